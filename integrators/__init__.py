@@ -1,0 +1,1 @@
+"""Integrator plugins, one per module; each registers itself on its last line."""

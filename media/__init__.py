@@ -1,0 +1,1 @@
+"""Medium plugins, one per module; each registers itself on its last line."""
