@@ -30,7 +30,7 @@ class Params:
                 f"{', '.join(repr(k) for k in unknown)}; allowed: {', '.join(self.allowed)}")
 
     def has(self, name: str) -> bool:
-        return self.props.has_property(name)
+        return name in self.props
 
     def _fail(self, name, value, allowed: str):
         raise PluginParameterError(f"{self.plugin}: parameter '{name}' = {value!r} is invalid; "

@@ -1,0 +1,195 @@
+"""Statistics shared by the tests, the CLI and the benchmarks.
+
+An :class:`Estimate` is the mean of K independent renders (different seeds) with its
+per-pixel standard error, so that two estimators can be compared with both of their
+variances (VALIDATION.md): a per-pixel Welch z-test with Sidak correction, the same test
+on block means, and a z-test on the image mean.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from statistics import NormalDist
+
+import numpy as np
+
+#: Floor on a standard error (pixels whose passes agree exactly, e.g. background).
+SE_FLOOR = 1e-4
+#: Epsilon in the relative-MSE denominator, in the image's units (a dark pixel does not
+#: dominate the error).
+REL_MSE_EPS = 1e-2
+
+
+@dataclass
+class Estimate:
+    """Mean image of ``passes`` independent renders and its per-pixel standard error."""
+    mean: np.ndarray
+    se: np.ndarray
+    passes: int
+    spp_per_pass: int
+    pass_seconds: list = field(default_factory=list)   # timed passes (compile excluded)
+    invalid: int = 0                                    # NaN/Inf pixel values seen
+
+    @property
+    def spp(self) -> int:
+        return self.passes * self.spp_per_pass
+
+    @property
+    def seconds(self) -> float:
+        """Median pass time x passes: the time the whole estimate takes once compiled."""
+        return float(np.median(self.pass_seconds)) * self.passes if self.pass_seconds else math.nan
+
+    @classmethod
+    def from_passes(cls, images, spp_per_pass, pass_seconds=(), invalid=0) -> "Estimate":
+        stack = np.stack([np.asarray(i, dtype=np.float64) for i in images])
+        k = stack.shape[0]
+        mean = stack.mean(axis=0)
+        se = stack.std(axis=0, ddof=1) / math.sqrt(k) if k > 1 else np.full_like(mean, np.inf)
+        return cls(mean, se, k, spp_per_pass, list(pass_seconds), invalid)
+
+
+def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: int = 0,
+                  warmup: bool = True, progress: str | None = None) -> Estimate:
+    """Render ``passes`` independent images (seeds ``seed``, ``seed + 1``, ...).
+
+    A warm-up render (not part of the estimate) compiles the kernel first so that pass
+    times exclude compilation; each pass is timed with ``dr.sync_thread()``.
+    Non-finite pixel values are counted (``Estimate.invalid``), never averaged in silently.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    def one(s):
+        img = mi.render(scene, integrator=integrator, spp=spp_per_pass, seed=s)
+        dr.eval(img)
+        dr.sync_thread()
+        return img
+
+    if warmup:
+        one(seed + 0x7FFF0000)
+    images, times, invalid = [], [], 0
+    iterator = range(passes)
+    if progress:
+        from tqdm import tqdm
+        iterator = tqdm(iterator, desc=progress, leave=False, unit="pass")
+    for k in iterator:
+        t0 = time.perf_counter()
+        img = one(seed + k)
+        times.append(time.perf_counter() - t0)
+        arr = np.array(img, dtype=np.float64)
+        bad = ~np.isfinite(arr)
+        invalid += int(bad.sum())
+        images.append(np.where(bad, 0.0, arr))
+    return Estimate.from_passes(images, spp_per_pass, times, invalid)
+
+
+def sidak_z(alpha: float, tests: int) -> float:
+    """Two-sided critical |z| for family-wise level ``alpha`` over ``tests`` tests (Sidak)."""
+    alpha_1 = -math.expm1(math.log1p(-alpha) / max(tests, 1))
+    return NormalDist().inv_cdf(1 - alpha_1 / 2)
+
+
+def welch_z(a: Estimate, b: Estimate, se_floor: float = SE_FLOOR) -> np.ndarray:
+    """Per-pixel-channel z = (a - b) / sqrt(se_a^2 + se_b^2), standard errors floored."""
+    se = np.sqrt(np.maximum(a.se, se_floor) ** 2 + np.maximum(b.se, se_floor) ** 2)
+    return (a.mean - b.mean) / se
+
+
+def _block_view(x: np.ndarray, block: int) -> np.ndarray:
+    h, w = x.shape[0] // block * block, x.shape[1] // block * block
+    x = x[:h, :w]
+    return x.reshape(h // block, block, w // block, block, *x.shape[2:]).swapaxes(1, 2)
+
+
+def block_estimate(e: Estimate, block: int) -> Estimate:
+    """Means over ``block x block`` pixel blocks; their standard errors from the pixels'."""
+    mean = _block_view(e.mean, block).mean(axis=(2, 3))
+    se = np.sqrt((_block_view(e.se, block) ** 2).sum(axis=(2, 3))) / block ** 2
+    return Estimate(mean, se, e.passes, e.spp_per_pass)
+
+
+@dataclass
+class Comparison:
+    """Outcome of :func:`compare`: three tests, each must pass."""
+    pixel_fail_fraction: float
+    pixel_threshold: float
+    block_failures: int
+    block_threshold: float
+    mean_z: np.ndarray
+    mean_threshold: float
+    max_pixel_fail_fraction: float
+    z: np.ndarray
+
+    @property
+    def passed(self) -> bool:
+        return (self.pixel_fail_fraction <= self.max_pixel_fail_fraction
+                and self.block_failures == 0
+                and bool(np.all(np.abs(self.mean_z) <= self.mean_threshold)))
+
+    def summary(self) -> str:
+        return (f"pixels failing |z|>{self.pixel_threshold:.2f}: {100 * self.pixel_fail_fraction:.3f}% "
+                f"(max {100 * self.max_pixel_fail_fraction:.2f}%); blocks failing "
+                f"|z|>{self.block_threshold:.2f}: {self.block_failures}; image-mean z per channel: "
+                f"{np.array2string(self.mean_z, precision=2)} (max {self.mean_threshold})")
+
+
+def compare(a: Estimate, b: Estimate, alpha: float = 0.01, max_pixel_fail_fraction: float = 0.0025,
+            block: int = 8, mean_threshold: float = 4.5, se_floor: float = SE_FLOOR) -> Comparison:
+    """Is ``a`` a sample of the same expectation as ``b``? (VALIDATION.md, three checks)
+
+    1. per-pixel-channel Welch z-test, Sidak-corrected at ``alpha`` over all pixel
+       channels; at most ``max_pixel_fail_fraction`` may fail (Mitsuba's 0.25%);
+    2. the same test on ``block x block`` block means: no block may fail;
+    3. z of the whole-image mean per channel: |z| <= ``mean_threshold``.
+    """
+    z = welch_z(a, b, se_floor)
+    z_crit = sidak_z(alpha, z.size)
+    ab, bb = block_estimate(a, block), block_estimate(b, block)
+    zb = welch_z(ab, bb, se_floor / block)
+    zb_crit = sidak_z(alpha, zb.size)
+    n = a.mean.shape[0] * a.mean.shape[1]
+    diff = (a.mean - b.mean).reshape(n, -1).mean(axis=0)
+    se_mean = np.sqrt(((a.se ** 2 + b.se ** 2).reshape(n, -1)).sum(axis=0)) / n
+    mean_z = diff / np.maximum(se_mean, 1e-12)
+    return Comparison(float(np.mean(np.abs(z) > z_crit)), z_crit, int(np.sum(np.abs(zb) > zb_crit)),
+                      zb_crit, mean_z, mean_threshold, max_pixel_fail_fraction, z)
+
+
+@dataclass
+class TTest:
+    mean: float
+    se: float
+    expected: float
+    t: float
+    df: int
+    p: float
+
+    def summary(self) -> str:
+        return (f"mean {self.mean:.6g} +- {self.se:.2g} (se), expected {self.expected:.6g}: "
+                f"t = {self.t:.2f}, df = {self.df}, p = {self.p:.3g}")
+
+
+def t_test(samples, expected: float) -> TTest:
+    """Two-sided one-sample Student t-test of independent ``samples`` against ``expected``."""
+    from scipy import stats as sps
+    x = np.asarray(samples, dtype=np.float64).ravel()
+    n = x.size
+    mean, se = float(x.mean()), float(x.std(ddof=1) / math.sqrt(n))
+    if se == 0:
+        t = 0.0 if mean == expected else math.copysign(math.inf, mean - expected)
+    else:
+        t = (mean - expected) / se
+    p = float(2 * sps.t.sf(abs(t), n - 1))
+    return TTest(mean, se, expected, t, n - 1, p)
+
+
+def rel_mse(image: np.ndarray, reference: np.ndarray, eps: float = REL_MSE_EPS) -> float:
+    """Relative mean squared error: mean((x - ref)^2 / (ref^2 + eps))."""
+    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+    return float(np.mean((image - reference) ** 2 / (reference ** 2 + eps)))
+
+
+def efficiency(rel_mse_value: float, seconds: float) -> float:
+    """Efficiency 1 / (relative MSE x time) (ALGORITHMS.md section 1): higher is better."""
+    return 1.0 / (rel_mse_value * seconds) if rel_mse_value > 0 and seconds > 0 else math.inf

@@ -1,0 +1,30 @@
+"""Registration follows variant switches; scalar variants say why they cannot work."""
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugins
+from helpers import load
+
+
+def test_plugins_registered_in_active_variant():
+    for name in mitsuba_plugins.PLUGINS:
+        assert isinstance(mi.load_dict({"type": name}), mi.SamplingIntegrator)
+
+
+def test_switch_to_scalar_gives_clear_error():
+    mi.set_variant("scalar_rgb")
+    with pytest.raises(RuntimeError, match="needs a JIT variant|is not supported: the plugins are vectorised"):
+        mi.load_dict({"type": "path_rr"})
+    with pytest.raises(mitsuba_plugins.UnsupportedVariantError, match="llvm_\\* or cuda_\\*"):
+        mitsuba_plugins.register()
+
+
+def test_switch_variant_and_render():
+    mi.set_variant("llvm_ad_mono")
+    for name in ("direct_mis", "path_rr"):
+        img = np.array(mi.render(load("furnace_env", integrator=name, res=8), spp=16))
+        assert img.shape == (8, 8, 1) and np.all(np.isfinite(img)) and abs(img.mean() - 0.8) < 0.05
+    mi.set_variant("llvm_ad_rgb")
+    img = np.array(mi.render(load("furnace_env", integrator="path_rr", res=8), spp=16))
+    assert img.shape == (8, 8, 3)

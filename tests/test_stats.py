@@ -1,0 +1,42 @@
+"""The statistics harness on synthetic data with known answers: it passes the same
+expectation and it catches a 2% bias."""
+import math
+
+import numpy as np
+
+from mitsuba_plugins import stats
+
+
+def synthetic(mean_img, passes, noise, rng):
+    return stats.Estimate.from_passes(
+        [mean_img + rng.normal(0, noise, mean_img.shape) for _ in range(passes)], 16)
+
+
+def test_sidak_threshold():
+    assert math.isclose(stats.sidak_z(0.05, 1), 1.959964, rel_tol=1e-5)
+    assert stats.sidak_z(0.01, 10 ** 5) > stats.sidak_z(0.01, 10)
+
+
+def test_same_expectation_passes_and_2pct_bias_fails():
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0.2, 1.0, (64, 64, 3))
+    ref = synthetic(truth, 16, 0.05, rng)
+    same = synthetic(truth, 8, 0.05, rng)
+    biased = synthetic(truth * 0.98, 8, 0.05, rng)
+    assert stats.compare(same, ref).passed
+    result = stats.compare(biased, ref)
+    assert not result.passed and np.all(result.mean_z < -4.5)
+
+
+def test_t_test():
+    rng = np.random.default_rng(2)
+    x = rng.normal(1.0, 0.1, 1000)
+    assert stats.t_test(x, 1.0).p > 1e-3
+    assert stats.t_test(x, 1.02).p < 1e-6
+
+
+def test_rel_mse_and_efficiency():
+    ref = np.ones((4, 4, 3))
+    assert stats.rel_mse(ref, ref) == 0.0
+    assert math.isclose(stats.rel_mse(ref * 1.1, ref), 0.01 / 1.01)
+    assert math.isclose(stats.efficiency(0.01, 2.0), 50.0)
