@@ -69,7 +69,7 @@ class EmitterSelection:
         # its selection probability (id 0 = no emitter -> 0).
         ids = dr.reinterpret_array(mi.UInt32, self.scene.emitters_dr())
         table = dr.zeros(mi.Float, dr.max(ids)[0] + 1 if dr.width(ids) else 1)
-        dr.scatter(table, self.distr.pmf() / self.distr.sum(), ids)
+        dr.scatter(table, self.distr.eval_pmf_normalized(dr.arange(mi.UInt32, self.count)), ids)
         self.pmf_by_id = table
         dr.eval(self.distr, self.pmf_by_id)
 
