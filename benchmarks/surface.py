@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import statistics
 import time
@@ -93,7 +94,7 @@ def main():
             print(f"{scene_name:12s} {ours['type']:10s}/{builtin['type']:6s} time ratio "
                   f"{r['time_ratio']:.3f}  efficiency ratio {r['efficiency_ratio']:.3f}", flush=True)
 
-    meta = {"date": datetime.date.today().isoformat(), "cpu": cpu_model(), "cores": __import__("os").cpu_count(),
+    meta = {"date": datetime.date.today().isoformat(), "cpu": cpu_model(), "cores": os.cpu_count(),
             "variant": args.variant, "mitsuba": mi.__version__, "drjit": dr.__version__,
             "llvm": ".".join(map(str, dr.detail.llvm_version())), "spp": args.spp,
             "res": args.res, "runs": args.runs, "ref_spp": args.ref_spp}

@@ -37,9 +37,11 @@ def _write_outputs(image, exr: Path):
 
 
 def cmd_render(args) -> int:
+    import time
+
     import drjit as dr
     import mitsuba as mi
-    import time
+    import numpy as np
     from mitsuba_plugins.compare import load_scene, parse_integrator
     scene = load_scene(args.scene, args.res)
     integrator = mi.load_dict(parse_integrator(args.integrator)) if args.integrator else None
@@ -48,8 +50,8 @@ def cmd_render(args) -> int:
     dr.eval(image)
     dr.sync_thread()
     seconds = time.perf_counter() - t0
-    array = __import__("numpy").array(image)
-    bad = int((~__import__("numpy").isfinite(array)).sum())
+    array = np.array(image)
+    bad = int((~np.isfinite(array)).sum())
     out = Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
     _write_outputs(array, out)
     print(f"wrote {out} and {out.with_suffix('.png')} ({seconds:.2f} s including compilation; "

@@ -46,7 +46,7 @@ def check_variant(variant: str | None) -> None:
         _llvm.check_loaded_llvm(tuple(dr.detail.llvm_version()))
 
 
-def _register_refusal(variant: str, error: Exception) -> None:
+def _register_refusal(error: Exception) -> None:
     """In an unsupported variant, make each plugin name fail with our message."""
     def refuse(props, _error=error):
         raise _error
@@ -77,7 +77,7 @@ def _on_variant_change(old: str | None, new: str | None) -> None:
     except UnsupportedVariantError as error:
         # Switching to a scalar variant for other work is legal; using our plugins
         # there is not, and says why.
-        _register_refusal(new, error)
+        _register_refusal(error)
         return
     register()
 
