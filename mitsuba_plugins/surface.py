@@ -111,14 +111,19 @@ def emission_mis(scene, emitters: EmitterSelection, mis: MIS, si, prev_si,
 def sample_emitter(emitters: EmitterSelection, si, u: mi.Point2f, active):
     """Next-event estimation, first half: ``(ds, Le / p_l, wo local, active)``."""
     ds, em_weight = emitters.sample_direction(si, u, active)
-    active &= ds.pdf != 0
-    return ds, em_weight, si.to_local(ds.d), active
+    # Not `active &= ...`: that would shrink the caller's mask in place.
+    return ds, em_weight, si.to_local(ds.d), active & (ds.pdf != 0)
 
 
-def emitter_contribution(mis: MIS, si, ds, em_weight, wo, bsdf_val, p_b):
-    """Next-event estimation, second half: ``f * Le / p_l * w_l`` (w_l = 1 for delta lights)."""
+def emitter_contribution(mis: MIS, si, ds, em_weight, wo, bsdf_val, p_b,
+                         frac_l: float = 1.0, frac_b: float = 1.0):
+    """Next-event estimation, second half: ``f * Le / p_l * w_l`` (w_l = 1 for delta lights).
+
+    ``frac_l``, ``frac_b``: sample counts of the two techniques (any common scale), so the
+    heuristic sees effective densities n_l p_l and n_b p_b (1 sample each by default).
+    """
     bsdf_val = si.to_world_mueller(bsdf_val, -wo, si.wi)
-    w_l = dr.select(ds.delta, 1.0, mis.weight(ds.pdf, p_b, emitter_technique=True))
+    w_l = dr.select(ds.delta, 1.0, mis.weight(ds.pdf * frac_l, p_b * frac_b, emitter_technique=True))
     return bsdf_val * em_weight * w_l
 
 
