@@ -75,6 +75,15 @@ def cmd_compare(args) -> int:
     return 1 if any(r.invalid for r in rows) else 0
 
 
+def cmd_grid_info(args) -> int:
+    import json
+    from mitsuba_plugins import gridio
+    for path in args.files:
+        info = gridio.grid_info(path, args.majorant_resolution)
+        print(json.dumps(info, indent=2) if args.json else gridio.format_info(info))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mitsuba-plugins", description=__doc__.splitlines()[0])
     p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
@@ -102,6 +111,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-o", "--output", help="output folder (default out/compare/SCENE)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_compare)
+
+    g = sub.add_parser("grid", help="inspect density grids (.vol, .npy)")
+    gsub = g.add_subparsers(dest="grid_command", required=True)
+    gi = gsub.add_parser("info", help="shape, bounds, density statistics, majorant-grid "
+                                      "emptiness")
+    gi.add_argument("files", nargs="+", help=".vol or .npy grid files")
+    gi.add_argument("--majorant-resolution", type=int, default=16,
+                    help="majorant cells per axis (default 16)")
+    gi.add_argument("--json", action="store_true", help="print JSON")
+    gi.set_defaults(func=cmd_grid_info)
     return p
 
 

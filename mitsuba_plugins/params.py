@@ -16,14 +16,16 @@ class Params:
     """Typed access to a ``mi.Properties`` for plugin ``plugin``.
 
     Construction rejects names outside ``allowed`` (a misspelled parameter is an error,
-    not a silent default).
+    not a silent default); nested objects of a type in ``objects`` (e.g. a medium's
+    ``<phase>``, whose name Mitsuba generates) are let through under any name.
     """
 
-    def __init__(self, props, plugin: str, allowed):
+    def __init__(self, props, plugin: str, allowed, objects: tuple = ()):
         self.props = props
         self.plugin = plugin
         self.allowed = tuple(allowed)
-        unknown = [k for k in props.keys() if k not in self.allowed]
+        unknown = [k for k in props.keys() if k not in self.allowed
+                   and not (objects and isinstance(props[k], objects))]
         if unknown:
             raise PluginParameterError(
                 f"{plugin}: unknown parameter{'s' if len(unknown) > 1 else ''} "

@@ -18,7 +18,10 @@ from mitsuba_plugins import _llvm
 PLUGINS = {
     "direct_mis": "mitsuba_plugins.integrators.direct_mis",
     "path_rr": "mitsuba_plugins.integrators.path_rr",
+    "grid_medium": "mitsuba_plugins.media.grid_medium",
 }
+#: plugins that are not integrators, by kind
+KINDS = {"grid_medium": "medium"}
 
 
 class UnsupportedVariantError(RuntimeError):
@@ -51,7 +54,9 @@ def _register_refusal(error: Exception) -> None:
     def refuse(props, _error=error):
         raise _error
     for name in PLUGINS:
-        mi.register_integrator(name, refuse)
+        register_kind = {"integrator": mi.register_integrator,
+                         "medium": mi.register_medium}[KINDS.get(name, "integrator")]
+        register_kind(name, refuse)
 
 
 def register() -> None:

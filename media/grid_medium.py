@@ -1,0 +1,422 @@
+"""Heterogeneous grid medium with a majorant grid; a drop-in for Mitsuba's ``heterogeneous``."""
+from __future__ import annotations
+
+import re
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_plugins import gridio
+from mitsuba_plugins.majorant import (DEFAULT_RESOLUTION, MARGIN, MajorantBuilder, MajorantGrid,
+                                      resolution_for)
+from mitsuba_plugins.params import Params, PluginParameterError
+
+VARIANT = mi.variant()
+
+#: elements moved to device memory per scatter while loading (bounds the extra memory)
+UPLOAD_CHUNK = 1 << 18
+#: margin (local units) of majorant cells when a nested volume's transform is read
+#: back from its printed 6-digit matrix
+PARSED_TRANSFORM_MARGIN = 2e-3
+INTERPOLATIONS = {"trilinear": dr.FilterMode.Linear, "nearest": dr.FilterMode.Nearest}
+
+
+class GridMedium(mi.Medium):
+    r"""
+    .. _medium-grid_medium:
+
+    Heterogeneous grid medium (:monosp:`grid_medium`)
+    -------------------------------------------------
+
+    .. pluginparameters::
+
+     * - filename
+       - |string|
+       - Density grid: Mitsuba's binary ``.vol`` (1 or 3 channels) or a float ``.npy`` of
+         shape ``(Z, Y, X)`` or ``(Z, Y, X, C)``. Without it, ``sigma_t`` is the extinction
+         itself, as in ``heterogeneous``.
+     * - sigma_t
+       - |float|, |rgb| or |volume|
+       - With ``filename``: a per-channel multiplier of the density (chromatic extinction),
+         >= 0. Without: the extinction (a nested ``gridvolume`` or a constant).
+         (Default: 1)
+     * - scale
+       - |float|
+       - Multiplies the extinction, >= 0. (Default: 1)
+     * - albedo
+       - |float|, |rgb| or |volume|
+       - Single-scattering albedo, in [0, 1]. (Default: 0.75)
+     * - emission
+       - |float|, |rgb| or |volume|
+       - Emitted radiance :math:`L_e` (>= 0), for integrators that support emissive media;
+         the emitted power per unit length is :math:`\sigma_a L_e`. Mitsuba's built-in
+         integrators ignore it. (Default: none)
+     * - interpolation
+       - |string|
+       - ``trilinear`` or ``nearest`` lookups of the ``filename`` grid. (Default: trilinear)
+     * - to_world
+       - |transform|
+       - Places the ``filename`` grid's unit cube in the world. (Default: identity)
+     * - use_grid_bbox
+       - |bool|
+       - Place the ``.vol`` grid in its header's bounding box (then ``to_world``), as
+         ``gridvolume`` does. (Default: false)
+     * - majorant_resolution
+       - |int|
+       - Cells per axis of the majorant grid, in [1, 1024] (capped at the grid's
+         resolution). (Default: 16)
+     * - has_spectral_extinction
+       - |bool|
+       - Tell integrators the extinction differs between channels. (Default: true when it
+         can: a 3-channel grid or a non-gray multiplier)
+     * - sample_emitters
+       - |bool|
+       - As Mitsuba's media: cast shadow rays from inside the medium. (Default: true)
+     * - (nested)
+       - |phase|
+       - Phase function. (Default: isotropic)
+
+    Extinction :math:`\sigma_t(x) = s\,k\,\rho(T^{-1}x)` with scale :math:`s`, multiplier
+    :math:`k` and the interpolated grid :math:`\rho` on the unit cube
+    (``gridvolume``'s convention: voxel centres at :math:`(i + 1/2)/N`, clamped beyond),
+    :math:`\sigma_s = \alpha\sigma_t`. ``get_majorant`` returns one gray global majorant
+    :math:`\max_c \max_x \sigma_{t,c}(x)`: Mitsuba's ``volpath`` samples distances with
+    it and stays unbiased with chromatic extinction. :attr:`majorant_grid` holds
+    per-cell bounds and a DDA (:mod:`mitsuba_plugins.majorant`) for our integrators.
+    With a nested ``sigma_t`` volume and no ``filename`` it renders exactly what
+    ``heterogeneous`` renders.
+
+    The ``filename`` grid is streamed from disk in slabs into one device buffer: peak
+    memory is about one copy of the raw grid (``gridvolume`` holds two).
+    """
+
+    ALLOWED = ("filename", "sigma_t", "scale", "albedo", "emission", "interpolation",
+               "to_world", "use_grid_bbox", "majorant_resolution", "has_spectral_extinction",
+               "sample_emitters")
+    FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox")
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
+        scale = p.float("scale", 1.0, lo=0.0)
+        self.albedo = _volume(p, "albedo", 0.75, hi=1.0)
+        self.emission = _volume(p, "emission", None) if p.has("emission") else None
+        self.cells = p.int("majorant_resolution", DEFAULT_RESOLUTION, lo=1, hi=1024)
+        self.filename = None
+        self.volume = None  # nested sigma_t volume (no filename)
+        if p.has("filename"):
+            self.filename = str(mi.file_resolver().resolve(p.props["filename"]))
+            factor = _color(p, "sigma_t", 1.0)
+            self.interpolation = p.choice("interpolation", "trilinear", tuple(INTERPOLATIONS))
+            to_world = _transform(p.props["to_world"]) if p.has("to_world") else \
+                mi.ScalarTransform4f()
+            data, to_local, bbox, builder = self._load(self.filename, to_world,
+                                                       p.bool("use_grid_bbox", False),
+                                                       factor)
+            self.data = data
+            self.texture = mi.Texture3f(data, use_accel=True, migrate=True,
+                                        filter_mode=INTERPOLATIONS[self.interpolation],
+                                        wrap_mode=dr.WrapMode.Clamp)
+            self.to_local = to_local
+            self.bbox = bbox
+            self.sigma_t_factor = mi.Color3f(factor)
+            self.channels = data.shape[3]
+        else:
+            given = [name for name in self.FILE_ONLY if p.has(name)]
+            if given:
+                raise PluginParameterError(
+                    f"grid_medium: parameter '{given[0]}' applies to a 'filename' grid; with "
+                    "a nested sigma_t volume set it on the volume (e.g. gridvolume's "
+                    "'filter_type', 'to_world', 'use_grid_bbox')")
+            self.volume = _volume(p, "sigma_t", 1.0)
+            self.bbox = self.volume.bbox()
+            self.channels = self.volume.channel_count()
+            self.sigma_t_factor = mi.Color3f(1.0)
+            builder = None
+        self.scale = mi.Float(scale)
+        chromatic = self.channels == 3 or len(set(_floats(self.sigma_t_factor))) > 1
+        self.m_has_spectral_extinction = p.bool("has_spectral_extinction", chromatic)
+        self.m_is_homogeneous = False
+        self.is_chromatic = chromatic
+        self._update_majorants(builder)
+
+    # -- loading ---------------------------------------------------------------------
+    def _load(self, path, to_world, use_grid_bbox, factor):
+        """Stream ``path`` into a device tensor, validating every slab; nothing is kept
+        if any check fails."""
+        header = gridio.read_header(path)
+        if use_grid_bbox and header.bbox is None:
+            raise PluginParameterError(
+                f"grid_medium: parameter 'use_grid_bbox' needs a .vol file (with a bounding "
+                f"box in its header); '{path}' has none")
+        to_local = to_world.inverse()
+        if use_grid_bbox:
+            lo, hi = (np.asarray(v, dtype=np.float32) for v in header.bbox)
+            to_local = mi.ScalarTransform4f().scale(1.0 / (hi - lo)).translate(-lo) @ to_local
+        builder = MajorantBuilder(header.shape, resolution_for(header.shape, self.cells),
+                                  _weights(factor, header.channels))
+        flat = dr.zeros(mi.Float, header.size)
+        slab_elems = int(np.prod(header.shape[1:]))
+        for z0, slab in gridio.iter_slabs(header):
+            gridio.check_values(path, "density", slab)
+            builder.add(z0, slab)
+            values = slab.reshape(-1)
+            for start in range(0, values.size, UPLOAD_CHUNK):
+                chunk = values[start:start + UPLOAD_CHUNK]
+                index = dr.arange(mi.UInt32, z0 * slab_elems + start,
+                                  z0 * slab_elems + start + chunk.size)
+                dr.scatter(flat, mi.Float(chunk), index)
+                dr.eval(flat)
+        data = mi.TensorXf(flat, shape=header.shape)
+        return data, to_local, _world_bbox(to_local), builder
+
+    def _update_majorants(self, builder=None):
+        """(Re)derive the global majorant and the majorant grid from the current data."""
+        to_local = self.to_local if self.volume is None else None
+        if builder is None:
+            builder, to_local = self._majorant_builder()
+        if builder is None:
+            # A constant (or procedural) volume: one cell over its bounding box.
+            grid_max = np.float32(self.volume.max())
+            values = np.full((1, 1, 1), grid_max, np.float32)
+        else:
+            values = builder.finish()
+            # heterogeneous's majorant is scale * volume.max(); keep it bit for bit.
+            grid_max = np.float32(self.volume.max() if self.volume is not None else builder.max)
+        scale = np.float32(_floats(self.scale)[0])
+        self.global_majorant = dr.opaque(mi.Float, float(scale * grid_max))
+        self.majorant_grid = MajorantGrid(values * scale, to_local, float(scale * grid_max))
+
+    def _majorant_builder(self):
+        """A filled :class:`MajorantBuilder` for the current data, and the grid's
+        world -> local transform; ``(None, transform)`` for a volume without data."""
+        if self.volume is None:
+            data = self.data.numpy()
+            gridio.check_values(self.filename, "density", data)
+            weights = _weights(_floats(self.sigma_t_factor), self.channels)
+            margin, to_local = MARGIN, self.to_local
+        else:
+            data, to_local = _volume_grid(self.volume)
+            if data is None:
+                return None, _bbox_to_local(self.bbox)
+            weights, margin = 1.0, PARSED_TRANSFORM_MARGIN
+        builder = MajorantBuilder(data.shape, resolution_for(data.shape, self.cells), weights,
+                                  margin)
+        builder.add_all(data)
+        return builder, to_local
+
+    # -- mi.Medium interface ---------------------------------------------------------
+    def intersect_aabb(self, ray: mi.Ray3f):
+        return mi.BoundingBox3f(self.bbox.min, self.bbox.max).ray_intersect(ray)
+
+    def get_majorant(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+        # One gray value for all channels: volpath picks one channel's majorant for
+        # distance sampling and is unbiased only when it bounds every channel.
+        return mi.Color3f(self.global_majorant)
+
+    def eval_sigma_t(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+        """Extinction at ``mei.p`` (per channel)."""
+        if self.volume is not None:
+            sigma_t = self.scale * self.volume.eval(mei, active)
+        else:
+            value = self.texture.eval(mi.Transform4f(self.to_local) @ mei.p, active)
+            rho = mi.Color3f(value[0]) if self.channels == 1 else mi.Color3f(*value)
+            sigma_t = self.scale * rho * self.sigma_t_factor
+        if mi.has_flag(self.phase_function().flags(), mi.PhaseFunctionFlags.Microflake):
+            sigma_t *= self.phase_function().projected_area(mei, active)
+        return sigma_t
+
+    def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
+        sigma_t = self.eval_sigma_t(mei, active)
+        sigma_s = sigma_t * self.albedo.eval(mei, active)
+        sigma_n = mi.Color3f(self.global_majorant) - sigma_t
+        return sigma_s, sigma_n, sigma_t
+
+    @property
+    def has_emission(self) -> bool:
+        return self.emission is not None
+
+    def get_radiance(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+        """Emitted radiance :math:`L_e` at ``mei.p`` (0 without ``emission``); an
+        integrator adds :math:`\\sigma_a L_e` per unit length (ALGORITHMS.md section 6)."""
+        if self.emission is None:
+            return mi.Color3f(0.0)
+        return mi.Color3f(self.emission.eval(mei, active))
+
+    def traverse(self, callback):
+        flags = mi.ParamFlags.NonDifferentiable
+        callback.put("scale", self.scale, flags)
+        if self.volume is not None:
+            callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
+        else:
+            callback.put("data", self.data, flags)
+            callback.put("sigma_t", self.sigma_t_factor, flags)
+        callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
+        if self.emission is not None:
+            callback.put("emission", self.emission, mi.ParamFlags.Differentiable)
+        callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys=None):
+        scale = _floats(self.scale)[0]
+        if not (np.isfinite(scale) and scale >= 0):
+            raise PluginParameterError(
+                f"grid_medium: parameter 'scale' = {scale!r} is invalid; allowed: a finite "
+                "number >= 0")
+        factor = _floats(self.sigma_t_factor)
+        if not all(np.isfinite(f) and f >= 0 for f in factor):
+            raise PluginParameterError(
+                f"grid_medium: parameter 'sigma_t' = {factor} is invalid; allowed: finite "
+                "values >= 0")
+        _check_volume_range("albedo", self.albedo, 0.0, 1.0)
+        if self.volume is None:
+            if tuple(self.data.shape) != tuple(self.texture.tensor().shape):
+                raise PluginParameterError(
+                    f"grid_medium: parameter 'data' changed shape from "
+                    f"{tuple(self.texture.tensor().shape)} to {tuple(self.data.shape)}")
+            self.texture.set_tensor(self.data)
+        else:
+            _check_volume_range("sigma_t", self.volume, 0.0, None)
+        self._update_majorants()
+
+    def to_string(self) -> str:
+        source = f"filename = '{self.filename}'" if self.filename else \
+            f"sigma_t = {self.volume.class_name()}"
+        rx, ry, rz = self.majorant_grid.resolution
+        return (f"GridMedium[\n  {source},\n  channels = {self.channels},\n"
+                f"  scale = {_floats(self.scale)[0]:g},\n"
+                f"  global_majorant = {_floats(self.global_majorant)[0]:g},\n"
+                f"  majorant_grid = {rx} x {ry} x {rz} (empty fraction "
+                f"{self.majorant_grid.empty_fraction():.3f}),\n"
+                f"  emission = {self.emission is not None}\n]")
+
+
+# -- parameter helpers ----------------------------------------------------------------
+def _floats(value) -> list:
+    """Python floats of a scalar, Color or Dr.Jit array of width 1."""
+    if isinstance(value, (int, float)):
+        return [float(value)]
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    return [float(v) for v in arr]
+
+
+def _color(p: Params, name: str, default: float) -> list:
+    """A non-negative float or rgb parameter as three floats."""
+    value = p.props[name] if p.has(name) else default
+    if isinstance(value, mi.Object):
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' must be a float or rgb multiplier when "
+            f"'filename' is given (got a {value.class_name()})")
+    try:
+        values = _floats(value)
+    except (TypeError, ValueError):
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' = {value!r} is invalid; allowed: a float or rgb "
+            ">= 0") from None
+    values = values * 3 if len(values) == 1 else values
+    if len(values) != 3 or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' = {values} is invalid; allowed: finite values "
+            ">= 0")
+    return values
+
+
+def _volume(p: Params, name: str, default, hi: float | None = None) -> mi.Volume:
+    """A float, rgb or nested volume parameter as a ``mi.Volume``, range-checked."""
+    value = p.props[name] if p.has(name) else default
+    if isinstance(value, mi.Volume):
+        _check_volume_range(name, value, 0.0, hi)
+        return value
+    if isinstance(value, mi.Object):
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' must be a float, rgb or volume (got a "
+            f"{value.class_name()})")
+    values = _color(p, name, default)
+    if hi is not None and max(values) > hi:
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' = {values} is invalid; allowed: values in "
+            f"[0, {hi:g}]")
+    spec = values[0] if len(set(values)) == 1 else {"type": "rgb", "value": values}
+    return mi.load_dict({"type": "constvolume", "value": spec})
+
+
+def _check_volume_range(name: str, volume: mi.Volume, lo: float, hi: float | None) -> None:
+    data, _ = _volume_grid(volume, need_transform=False)
+    if data is not None:
+        gridio.check_values(f"<{name} volume>", name, data, lo, hi)
+        return
+    vmax = float(volume.max())
+    if not np.isfinite(vmax) or (hi is not None and vmax > hi):
+        raise PluginParameterError(
+            f"grid_medium: parameter '{name}' has maximum {vmax:g}; allowed: values in "
+            f"[{lo:g}, {'inf' if hi is None else f'{hi:g}'}]")
+
+
+def _weights(factor, channels: int) -> np.ndarray:
+    """Per-channel weights of the grid for the gray majorant."""
+    factor = np.asarray(factor, dtype=np.float32)
+    return np.array([factor.max()], np.float32) if channels == 1 else factor
+
+
+def _transform(value) -> mi.ScalarTransform4f:
+    """A Properties transform (double precision) as a float transform."""
+    return mi.ScalarTransform4f(dr.scalar.Matrix4f(value.matrix),
+                                dr.scalar.Matrix4f(value.inverse_transpose))
+
+
+def _world_bbox(to_local: mi.ScalarTransform4f) -> mi.ScalarBoundingBox3f:
+    to_world = to_local.inverse()
+    bbox = mi.ScalarBoundingBox3f()
+    for corner in range(8):
+        bbox.expand(to_world @ mi.ScalarPoint3f(corner & 1, (corner >> 1) & 1, corner >> 2))
+    return bbox
+
+
+def _bbox_to_local(bbox) -> mi.ScalarTransform4f:
+    lo = np.array(bbox.min, dtype=np.float32)
+    extent = np.maximum(np.array(bbox.max, dtype=np.float32) - lo, 1e-30)
+    return mi.ScalarTransform4f().scale(1.0 / extent).translate(-lo)
+
+
+_MATRIX = re.compile(r"to_local = Transform\[\s*matrix=\[(.*?)\]\],", re.S)
+
+
+def _volume_grid(volume: mi.Volume, need_transform: bool = True):
+    """``(data (Z, Y, X, C) numpy or None, to_local)`` of a Mitsuba volume.
+
+    Only grid volumes expose data. Mitsuba does not expose a volume's transform, so it is
+    read back from ``to_string()`` (6 significant digits; the majorant cells get a
+    matching margin), and checked against the volume's bounding box.
+    """
+    params = mi.traverse(volume)
+    if "data" not in params:
+        return None, None
+    data = np.asarray(params["data"].numpy(), dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., None]
+    if not need_transform:
+        return data, None
+    match = _MATRIX.search(str(volume))
+    to_local = None
+    if match:
+        rows = re.findall(r"\[([^\[\]]*)\]", match.group(1) + "]")
+        try:
+            matrix = np.array([[float(v) for v in r.split(",")] for r in rows], np.float32)
+            to_local = mi.ScalarTransform4f(matrix) if matrix.shape == (4, 4) else None
+        except ValueError:
+            to_local = None
+    bbox = volume.bbox()
+    if to_local is not None:
+        ours = _world_bbox(to_local)
+        size = float(np.max(np.abs(np.array(bbox.max) - np.array(bbox.min))))
+        err = max(float(np.max(np.abs(np.array(ours.min) - np.array(bbox.min)))),
+                  float(np.max(np.abs(np.array(ours.max) - np.array(bbox.max)))))
+        if not err <= 1e-4 * max(size, 1.0):
+            to_local = None
+    if to_local is None:
+        # Unreadable transform: one cell over the bounding box, still a valid bound.
+        return None, None
+    return data, to_local
+
+
+mi.register_medium("grid_medium", lambda props: GridMedium(props))

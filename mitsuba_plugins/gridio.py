@@ -1,0 +1,308 @@
+"""Read and write density grids: Mitsuba's binary ``.vol`` and NumPy ``.npy``.
+
+Arrays are always ``(Z, Y, X, C)`` float32, C-ordered, so that
+``data[z, y, x, c]`` is the value Mitsuba's ``gridvolume`` stores at
+``((z * Y + y) * X + x) * C + c``.
+
+``.vol`` layout (little endian; the format ``gridvolume`` reads):
+
+======  ===================================================================
+bytes   content
+======  ===================================================================
+0-2     ASCII ``VOL``
+3       version, 3
+4-7     encoding (int32), 1 = float32
+8-19    X, Y, Z cell counts (int32)
+20-23   channel count (int32)
+24-47   bounding box (6 x float32: xmin, ymin, zmin, xmax, ymax, zmax)
+48-     data, ``X * Y * Z * C`` float32 values
+======  ===================================================================
+
+Every reader validates before it returns anything, and a malformed file raises
+:class:`GridFileError` naming the file and what is wrong with it.  Large grids are
+read in slabs of whole z-slices (:func:`iter_slabs`) so a caller can move them into
+device memory without holding a second full copy.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import struct
+
+import numpy as np
+
+VOL_MAGIC = b"VOL"
+VOL_VERSION = 3
+VOL_ENCODING_FLOAT32 = 1
+VOL_HEADER = struct.Struct("<3sBiiiii6f")  # 48 bytes
+#: channel counts a density / albedo / emission grid may have
+GRID_CHANNELS = (1, 3)
+#: smallest resolution per axis (trilinear interpolation needs two samples)
+MIN_RESOLUTION = 2
+#: bytes per slab in :func:`iter_slabs` (whole z-slices, at least one)
+SLAB_BYTES = 1 << 20
+
+
+class GridFileError(ValueError):
+    """A grid file is missing, malformed or holds invalid values."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GridHeader:
+    """Shape and placement of a grid file, read without loading its data."""
+    path: str
+    shape: tuple  # (Z, Y, X, C)
+    bbox: tuple | None  # ((xmin, ymin, zmin), (xmax, ymax, zmax)); None for .npy
+    offset: int  # byte offset of the data
+    dtype: np.dtype  # on-disk element type
+    fortran_order: bool = False
+
+    @property
+    def resolution(self) -> tuple:
+        """(X, Y, Z), Mitsuba's order."""
+        z, y, x, _ = self.shape
+        return (x, y, z)
+
+    @property
+    def channels(self) -> int:
+        return self.shape[3]
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+
+def _fail(path, what: str):
+    raise GridFileError(f"grid file '{path}': {what}")
+
+
+def _check_shape(path, shape):
+    z, y, x, c = shape
+    if c not in GRID_CHANNELS:
+        _fail(path, f"{c} channels; allowed: {' or '.join(map(str, GRID_CHANNELS))}")
+    if min(x, y, z) < MIN_RESOLUTION:
+        _fail(path, f"resolution {x} x {y} x {z} (X x Y x Z); each axis needs at least "
+                    f"{MIN_RESOLUTION} cells")
+
+
+def read_header(path) -> GridHeader:
+    """Validate and return the header of a ``.vol`` or ``.npy`` grid file."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        _fail(path, "file does not exist")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".vol":
+        return _read_vol_header(path)
+    if ext == ".npy":
+        return _read_npy_header(path)
+    _fail(path, f"unknown extension '{ext}'; allowed: .vol (Mitsuba binary grid) or .npy")
+
+
+def _read_vol_header(path) -> GridHeader:
+    with open(path, "rb") as f:
+        raw = f.read(VOL_HEADER.size)
+    if len(raw) < VOL_HEADER.size:
+        if raw[:3] != VOL_MAGIC[:len(raw[:3])]:
+            _fail(path, "not a .vol file (the first bytes are not 'VOL')")
+        _fail(path, f"truncated header ({len(raw)} of {VOL_HEADER.size} bytes)")
+    magic, version, encoding, x, y, z, c, *bbox = VOL_HEADER.unpack(raw)
+    if magic != VOL_MAGIC:
+        _fail(path, f"not a .vol file (magic {magic!r}, expected b'VOL')")
+    if version != VOL_VERSION:
+        _fail(path, f"unsupported .vol version {version}; allowed: {VOL_VERSION}")
+    if encoding != VOL_ENCODING_FLOAT32:
+        _fail(path, f"unsupported encoding {encoding}; allowed: {VOL_ENCODING_FLOAT32} "
+                    "(float32)")
+    if min(x, y, z, c) <= 0:
+        _fail(path, f"invalid dimensions X={x} Y={y} Z={z} channels={c}")
+    shape = (z, y, x, c)
+    _check_shape(path, shape)
+    lo, hi = tuple(bbox[:3]), tuple(bbox[3:])
+    if not (np.all(np.isfinite(bbox)) and all(a < b for a, b in zip(lo, hi))):
+        _fail(path, f"invalid bounding box min={lo} max={hi}; needs finite min < max")
+    expected = VOL_HEADER.size + 4 * int(np.prod(shape))
+    actual = os.path.getsize(path)
+    if actual < expected:
+        _fail(path, f"truncated data: {actual} bytes, the header announces {expected}")
+    if actual > expected:
+        _fail(path, f"{actual - expected} bytes of trailing data after the grid "
+                    f"(header announces {expected} bytes in all)")
+    return GridHeader(path, shape, (lo, hi), VOL_HEADER.size, np.dtype("<f4"))
+
+
+def _read_npy_header(path) -> GridHeader:
+    with open(path, "rb") as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+            if read is None:
+                _fail(path, f".npy format version {version}; allowed: 1.0 or 2.0")
+            shape, fortran_order, dtype = read(f)
+        except (ValueError, OSError) as error:
+            _fail(path, f"not a valid .npy file ({error})")
+        offset = f.tell()
+    if dtype.kind != "f":
+        _fail(path, f"dtype {dtype}; allowed: float32 (or another float type)")
+    if len(shape) == 3:
+        shape = shape + (1,)
+    if len(shape) != 4:
+        _fail(path, f"shape {shape}; allowed: (Z, Y, X) or (Z, Y, X, C)")
+    _check_shape(path, shape)
+    expected = offset + dtype.itemsize * int(np.prod(shape))
+    actual = os.path.getsize(path)
+    if actual < expected:
+        _fail(path, f"truncated data: {actual} bytes, the header announces {expected}")
+    return GridHeader(path, tuple(int(s) for s in shape), None, offset, dtype, fortran_order)
+
+
+def check_values(path, name: str, values: np.ndarray, lo: float = 0.0,
+                 hi: float | None = None) -> None:
+    """Raise unless every value is finite and within [lo, hi]."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        _fail(path, f"{name}: {int(bad.sum())} non-finite value(s) (NaN or Inf)")
+    vmin = float(values.min())
+    if vmin < lo:
+        _fail(path, f"{name}: negative value {vmin:g}; allowed: >= {lo:g}")
+    if hi is not None:
+        vmax = float(values.max())
+        if vmax > hi:
+            _fail(path, f"{name}: value {vmax:g} above {hi:g}; allowed: [{lo:g}, {hi:g}]")
+
+
+def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):
+    """Yield ``(z0, slab)`` with ``slab`` a float32 ``(k, Y, X, C)`` array of z-slices.
+
+    Reads the file incrementally (one slab in memory at a time) for C-ordered data;
+    a Fortran-ordered ``.npy`` is loaded whole first.
+    """
+    z, y, x, c = header.shape
+    if header.fortran_order:
+        data = np.load(header.path).reshape(header.shape)
+        for z0 in range(0, z, 1):
+            yield z0, np.ascontiguousarray(data[z0:z0 + 1], dtype=np.float32)
+        return
+    slice_count = y * x * c
+    per_slab = max(1, slab_bytes // (4 * slice_count))
+    with open(header.path, "rb") as f:
+        f.seek(header.offset)
+        for z0 in range(0, z, per_slab):
+            k = min(per_slab, z - z0)
+            count = k * slice_count
+            raw = np.fromfile(f, dtype=header.dtype, count=count)
+            if raw.size != count:
+                _fail(header.path, "truncated data")
+            yield z0, raw.astype(np.float32, copy=False).reshape(k, y, x, c)
+
+
+def read_grid(path, check: bool = True) -> tuple:
+    """Load a whole grid: ``(data (Z, Y, X, C) float32, bbox or None)``.
+
+    With ``check``, non-finite and negative values raise :class:`GridFileError`.
+    """
+    header = read_header(path)
+    data = np.empty(header.shape, dtype=np.float32)
+    for z0, slab in iter_slabs(header):
+        if check:
+            check_values(header.path, "data", slab)
+        data[z0:z0 + slab.shape[0]] = slab
+    return data, header.bbox
+
+
+def as_grid_array(data) -> np.ndarray:
+    """``data`` as a float32 ``(Z, Y, X, C)`` array (a 3D array gets C = 1)."""
+    data = np.asarray(data, dtype=np.float32)
+    if data.ndim == 3:
+        data = data[..., None]
+    if data.ndim != 4:
+        raise GridFileError(f"grid array of shape {data.shape}; allowed: (Z, Y, X) or "
+                            "(Z, Y, X, C)")
+    return np.ascontiguousarray(data)
+
+
+def write_vol(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
+    """Write ``data`` ((Z, Y, X) or (Z, Y, X, C)) as a version-3 float32 ``.vol``."""
+    data = as_grid_array(data)
+    z, y, x, c = data.shape
+    _check_shape(path, data.shape)
+    lo, hi = bbox
+    header = VOL_HEADER.pack(VOL_MAGIC, VOL_VERSION, VOL_ENCODING_FLOAT32, x, y, z, c,
+                             *map(float, lo), *map(float, hi))
+    with open(path, "wb") as f:
+        f.write(header)
+        f.write(data.astype("<f4", copy=False).tobytes())
+
+
+def write_grid(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
+    """Write ``.vol`` or ``.npy`` by extension (``.npy`` stores no bounding box)."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext == ".vol":
+        write_vol(path, data, bbox)
+    elif ext == ".npy":
+        np.save(path, as_grid_array(data))
+    else:
+        raise GridFileError(f"grid file '{path}': unknown extension '{ext}'; allowed: .vol "
+                            "or .npy")
+
+
+def grid_info(path, cells: int = 16) -> dict:
+    """Summary of a grid file, read slab by slab: shape, bounds, density statistics and
+    the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0."""
+    from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
+    header = read_header(path)
+    z, y, x, c = header.shape
+    builder = MajorantBuilder(header.shape, resolution_for(header.shape, cells))
+    total, vmin, vmax, nonfinite = 0.0, np.inf, 0.0, 0
+    for z0, slab in iter_slabs(header):
+        finite = np.isfinite(slab)
+        nonfinite += int((~finite).sum())
+        slab = np.where(finite, slab, 0.0).astype(np.float32)
+        total += float(slab.sum(dtype=np.float64))
+        vmin, vmax = min(vmin, float(slab.min())), max(vmax, float(slab.max()))
+        builder.add(z0, slab)
+    mean = total / header.size
+    cells_max = builder.finish()
+    bbox = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    return {
+        "file": header.path,
+        "format": os.path.splitext(header.path)[1][1:],
+        "resolution": [x, y, z],
+        "channels": c,
+        "bbox_min": list(bbox[0]),
+        "bbox_max": list(bbox[1]),
+        "bbox_from": "header" if header.bbox else "unit cube",
+        "min": vmin,
+        "max": vmax,
+        "mean": mean,
+        "max_over_mean": vmax / mean if mean > 0 else float("inf"),
+        "nonfinite": nonfinite,
+        "negative": vmin < 0,
+        "majorant_resolution": list(builder.resolution),
+        "majorant_empty_fraction": float(np.mean(cells_max == 0)),
+        "majorant_mean_over_max": float(cells_max.mean() / vmax) if vmax > 0 else 0.0,
+    }
+
+
+def format_info(info: dict) -> str:
+    """``grid_info`` as aligned text lines."""
+    res = " x ".join(map(str, info["resolution"]))
+    mres = " x ".join(map(str, info["majorant_resolution"]))
+    fmt = lambda v: "[" + ", ".join(f"{a:g}" for a in v) + "]"  # noqa: E731
+    lines = [
+        ("file", info["file"]),
+        ("resolution", f"{res} (X x Y x Z), {info['channels']} channel(s), {info['format']}"),
+        ("bounds", f"{fmt(info['bbox_min'])} - {fmt(info['bbox_max'])} ({info['bbox_from']})"),
+        ("density min/max", f"{info['min']:.6g} / {info['max']:.6g}"),
+        ("density mean", f"{info['mean']:.6g}"),
+        ("max / mean", f"{info['max_over_mean']:.4g}"),
+        ("majorant grid", f"{mres} cells; empty volume fraction "
+                          f"{info['majorant_empty_fraction']:.4f}; mean cell bound / max "
+                          f"{info['majorant_mean_over_max']:.4f}"),
+    ]
+    if info["nonfinite"] or info["negative"]:
+        lines.append(("INVALID", f"{info['nonfinite']} non-finite value(s)"
+                      + (", negative values" if info["negative"] else "")
+                      + "; grid_medium will refuse this file"))
+    width = max(len(k) for k, _ in lines)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
