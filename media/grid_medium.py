@@ -97,6 +97,10 @@ class GridMedium(mi.Medium):
     FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox")
 
     def __init__(self, props: mi.Properties):
+        if not mi.is_rgb:
+            raise PluginParameterError(
+                f"grid_medium: variant '{mi.variant()}' is not supported; use an RGB variant "
+                "(llvm_ad_rgb or cuda_ad_rgb): extinction, albedo and emission are RGB")
         super().__init__(props)
         p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
         scale = p.float("scale", 1.0, lo=0.0)

@@ -8,14 +8,18 @@ from helpers import load
 
 
 def test_plugins_registered_in_active_variant():
+    kinds = {"integrator": mi.SamplingIntegrator, "medium": mi.Medium}
     for name in mitsuba_plugins.PLUGINS:
-        assert isinstance(mi.load_dict({"type": name}), mi.SamplingIntegrator)
+        kind = mitsuba_plugins.registry.KINDS.get(name, "integrator")
+        assert isinstance(mi.load_dict({"type": name}), kinds[kind])
 
 
 def test_switch_to_scalar_gives_clear_error():
     mi.set_variant("scalar_rgb")
     with pytest.raises(RuntimeError, match="needs a JIT variant|is not supported: the plugins are vectorised"):
         mi.load_dict({"type": "path_rr"})
+    with pytest.raises(RuntimeError, match="need a JIT variant"):
+        mi.load_dict({"type": "grid_medium"})
     with pytest.raises(mitsuba_plugins.UnsupportedVariantError, match="llvm_\\* or cuda_\\*"):
         mitsuba_plugins.register()
 
@@ -25,6 +29,8 @@ def test_switch_variant_and_render():
     for name in ("direct_mis", "path_rr"):
         img = np.array(mi.render(load("furnace_env", integrator=name, res=8), spp=16))
         assert img.shape == (8, 8, 1) and np.all(np.isfinite(img)) and abs(img.mean() - 0.8) < 0.05
+    with pytest.raises(RuntimeError, match="grid_medium: variant 'llvm_ad_mono' is not supported"):
+        mi.load_dict({"type": "grid_medium"})
     mi.set_variant("llvm_ad_rgb")
     img = np.array(mi.render(load("furnace_env", integrator="path_rr", res=8), spp=16))
     assert img.shape == (8, 8, 3)
