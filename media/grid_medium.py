@@ -183,14 +183,15 @@ class GridMedium(mi.Medium):
         if builder is None:
             # A constant (or procedural) volume: one cell over its bounding box.
             grid_max = np.float32(self.volume.max())
-            values = np.full((1, 1, 1), grid_max, np.float32)
+            values = lows = np.full((1, 1, 1), grid_max, np.float32)
         else:
-            values = builder.finish()
+            values, lows = builder.finish(), builder.finish_min()
             # heterogeneous's majorant is scale * volume.max(); keep it bit for bit.
             grid_max = np.float32(self.volume.max() if self.volume is not None else builder.max)
         scale = np.float32(_floats(self.scale)[0])
         self.global_majorant = dr.opaque(mi.Float, float(scale * grid_max))
-        self.majorant_grid = MajorantGrid(values * scale, to_local, float(scale * grid_max))
+        self.majorant_grid = MajorantGrid(values * scale, to_local, float(scale * grid_max),
+                                          minorants=lows * scale)
 
     def _majorant_builder(self):
         """A filled :class:`MajorantBuilder` for the current data, and the grid's

@@ -17,14 +17,18 @@ nearest lookup reads ``floor(xN)``; both are inside the range built here for
 ``x in [r/R - m, (r+1)/R + m]``, ``m`` a margin in local units that absorbs rounding
 in the ray-to-cell mapping. An interpolated value is a convex combination of those
 voxels, so it cannot exceed their maximum (up to one rounding, covered by
-``ROUNDING``). The integrator decides what happens at a tentative collision; this
-module only bounds and traverses.
+``ROUNDING``). The same argument bounds it from below by the minimum of those voxels:
+the per-cell *minorant* is the control extinction of residual ratio tracking (Novak et
+al. 2014). The integrator decides what happens at a tentative collision; this module
+only bounds and traverses.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+VARIANT = mi.variant()
 
 #: default cells per axis
 DEFAULT_RESOLUTION = 16
@@ -43,9 +47,9 @@ def voxel_ranges(voxels: int, cells: int, margin: float = MARGIN) -> tuple:
     return np.clip(lo, 0, voxels - 1), np.clip(hi, 0, voxels - 1)
 
 
-def _reduce_axis(values: np.ndarray, axis: int, ranges: tuple) -> np.ndarray:
+def _reduce_axis(values: np.ndarray, axis: int, ranges: tuple, op=np.max) -> np.ndarray:
     lo, hi = ranges
-    parts = [values.take(np.arange(a, b + 1), axis=axis).max(axis=axis) for a, b in zip(lo, hi)]
+    parts = [op(values.take(np.arange(a, b + 1), axis=axis), axis=axis) for a, b in zip(lo, hi)]
     return np.stack(parts, axis=axis)
 
 
@@ -53,7 +57,8 @@ class MajorantBuilder:
     """Per-cell maxima of a ``(Z, Y, X, C)`` grid fed slab by slab (z-slices in order).
 
     ``weights`` (length C, or a scalar) multiply the channels before the maximum
-    over channels is taken: the bound is gray, ``max_c weights_c * value_c``.
+    over channels is taken: the bound is gray, ``max_c weights_c * value_c``. The
+    lower bound (:meth:`finish_min`) is ``min_c weights_c * value_c`` over the same voxels.
     """
 
     def __init__(self, shape, resolution, weights=1.0, margin: float = MARGIN):
@@ -65,17 +70,22 @@ class MajorantBuilder:
         self.ranges = (voxel_ranges(z, rz, margin), voxel_ranges(y, ry, margin),
                        voxel_ranges(x, rx, margin))
         self.per_slice = np.zeros((z, ry, rx), dtype=np.float32)
+        self.per_slice_min = np.zeros((z, ry, rx), dtype=np.float32)
         self.max = 0.0
 
     def add(self, z0: int, slab: np.ndarray) -> None:
         if slab.shape[3] == 1:
-            gray = slab[..., 0] * self.weights[0]
+            gray = low = slab[..., 0] * self.weights[0]
         else:
-            gray = (slab * self.weights).max(axis=3)
+            weighted = slab * self.weights
+            gray, low = weighted.max(axis=3), weighted.min(axis=3)
         if gray.size:
             self.max = max(self.max, float(gray.max()))
+        rows = slice(z0, z0 + slab.shape[0])
         reduced = _reduce_axis(gray, 1, self.ranges[1])
-        self.per_slice[z0:z0 + slab.shape[0]] = _reduce_axis(reduced, 2, self.ranges[2])
+        self.per_slice[rows] = _reduce_axis(reduced, 2, self.ranges[2])
+        reduced = _reduce_axis(low, 1, self.ranges[1], np.min)
+        self.per_slice_min[rows] = _reduce_axis(reduced, 2, self.ranges[2], np.min)
 
     def add_all(self, data: np.ndarray, slab: int = 16) -> MajorantBuilder:
         """Feed a whole ``(Z, Y, X, C)`` array."""
@@ -87,6 +97,11 @@ class MajorantBuilder:
         """``(Rz, Ry, Rx)`` float32 cell bounds."""
         cells = _reduce_axis(self.per_slice, 0, self.ranges[0])
         return (cells * np.float32(1 + ROUNDING)).astype(np.float32)
+
+    def finish_min(self) -> np.ndarray:
+        """``(Rz, Ry, Rx)`` float32 lower bounds of the extinction in each cell."""
+        cells = _reduce_axis(self.per_slice_min, 0, self.ranges[0], np.min)
+        return (cells * np.float32(1 - ROUNDING)).astype(np.float32)
 
 
 def build_majorants(data: np.ndarray, resolution, weights=1.0, margin: float = MARGIN,
@@ -122,19 +137,26 @@ class MajorantGrid:
     """Cell bounds of extinction over the unit cube of a local frame, with DDA.
 
     ``values``: ``(Rz, Ry, Rx)`` bounds; ``to_local``: world -> local transform;
-    ``outside``: the bound used where a ray is outside the box (the global majorant).
-    Arrays are evaluated and opaque, so a changed grid never recompiles a kernel.
+    ``outside``: the bound used where a ray is outside the box (the global majorant);
+    ``minorants``: optional ``(Rz, Ry, Rx)`` lower bounds (0 where not given, and
+    outside the box). Arrays are evaluated and opaque, so a changed grid never
+    recompiles a kernel.
     """
 
-    def __init__(self, values: np.ndarray, to_local, outside: float):
+    def __init__(self, values: np.ndarray, to_local, outside: float,
+                 minorants: np.ndarray | None = None):
         values = np.asarray(values, dtype=np.float32)
         rz, ry, rx = values.shape
         self.resolution = (rx, ry, rz)
         self.host_values = values
         self.values = mi.Float(values.ravel())
+        lows = np.zeros_like(values) if minorants is None else \
+            np.minimum(np.asarray(minorants, dtype=np.float32).reshape(values.shape), values)
+        self.host_minorants = lows
+        self.minorants = mi.Float(lows.ravel())
         self.outside = dr.opaque(mi.Float, float(outside))
         self.to_local = mi.Transform4f(to_local)
-        dr.make_opaque(self.values, self.to_local)
+        dr.make_opaque(self.values, self.minorants, self.to_local)
 
     # -- queries -----------------------------------------------------------------
     def empty_fraction(self) -> float:
@@ -183,6 +205,12 @@ class MajorantGrid:
         Call while ``state.t < state.t_end``. Segments have ``t1 >= t0`` and the next
         one starts where this one ends; inside the box each is one cell.
         """
+        t0, t1, sigma_maj, _, state = self.next_bounds(state, active, minorant=False)
+        return t0, t1, sigma_maj, state
+
+    def next_bounds(self, state: DDAState, active=True, minorant: bool = True):
+        """As :meth:`next`, with the segment's minorant: ``(t0, t1, sigma_maj,
+        sigma_min, state)`` (``sigma_min`` is 0 outside the box or when not asked for)."""
         t0 = mi.Float(state.t)
         before = t0 < state.t_in
         inside = ~before & (t0 < state.t_out)
@@ -195,9 +223,13 @@ class MajorantGrid:
         t_cross = dr.min(t_face)
         t1_inside = dr.maximum(dr.minimum(t_cross, state.t_out), t0)
 
-        value = dr.gather(mi.Float, self.values, self._index(state.cell), active & inside)
+        index = self._index(state.cell)
+        value = dr.gather(mi.Float, self.values, index, active & inside)
         t1 = dr.select(before, state.t_in, dr.select(inside, t1_inside, state.t_end))
         sigma_maj = dr.select(inside, value, self.outside)
+        sigma_min = mi.Float(0.0)
+        if minorant:
+            sigma_min = dr.gather(mi.Float, self.minorants, index, active & inside)
 
         # Step every axis whose face is crossed at t_cross (corners step several).
         crossing = inside & (t_cross < state.t_out)
@@ -211,7 +243,7 @@ class MajorantGrid:
         new = DDAState(dr.select(active, t1, state.t), state.t_end, state.t_in,
                        state.t_out, dr.select(active, self._clamp_cell(cell), state.cell),
                        state.o, state.d)
-        return t0, t1, sigma_maj, new
+        return t0, t1, sigma_maj, sigma_min, new
 
     def segments(self, ray: mi.Ray3f, tmin, tmax, max_segments: int | None = None):
         """All segments as numpy arrays ``(t0, t1, sigma_maj, valid)`` of shape

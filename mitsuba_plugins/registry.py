@@ -19,7 +19,10 @@ PLUGINS = {
     "direct_mis": "mitsuba_plugins.integrators.direct_mis",
     "path_rr": "mitsuba_plugins.integrators.path_rr",
     "grid_medium": "mitsuba_plugins.media.grid_medium",
+    "volpath_delta": "mitsuba_plugins.integrators.volpath_delta",
 }
+#: shared modules whose classes bind variant types at import; re-imported first
+SUPPORT_MODULES = ("mitsuba_plugins.majorant", "mitsuba_plugins.tracking")
 #: plugins that are not integrators, by kind
 KINDS = {"grid_medium": "medium"}
 
@@ -66,7 +69,7 @@ def register() -> None:
     """
     variant = mi.variant()
     check_variant(variant)
-    for module_name in PLUGINS.values():
+    for module_name in (*SUPPORT_MODULES, *PLUGINS.values()):
         module = sys.modules.get(module_name)
         if module is None:
             importlib.import_module(module_name)

@@ -73,17 +73,20 @@ class EmitterSelection:
         self.pmf_by_id = table
         dr.eval(self.distr, self.pmf_by_id)
 
-    def sample_direction(self, si, u: mi.Point2f, active):
-        """Emitter-sampled direction with visibility: ``(ds, Le / p)``, ``ds.pdf``
-        in solid angle including the selection probability (Scene::sample_emitter_direction)."""
+    def sample_direction(self, si, u: mi.Point2f, active, test_visibility: bool = True):
+        """Emitter-sampled direction: ``(ds, Le / p)``, ``ds.pdf`` in solid angle
+        including the selection probability (Scene::sample_emitter_direction). With
+        ``test_visibility`` false the caller accounts for occlusion (and transmittance)."""
         if self.rule == "uniform":
-            return self.scene.sample_emitter_direction(si, u, True, active)
+            return self.scene.sample_emitter_direction(si, u, test_visibility, active)
         index, u_x, pmf = self.distr.sample_reuse_pmf(u.x, active)
         emitter = dr.gather(mi.EmitterPtr, self.scene.emitters_dr(), index, active)
         ds, weight = emitter.sample_direction(si, mi.Point2f(u_x, u.y), active)
         ds.pdf *= pmf
         weight *= dr.rcp(pmf)
-        visible = active & ~self.scene.ray_test(si.spawn_ray_to(ds.p), active)
+        visible = active
+        if test_visibility:
+            visible = active & ~self.scene.ray_test(si.spawn_ray_to(ds.p), active)
         return ds, dr.select(visible & (ds.pdf != 0), weight, 0.0)
 
     def pdf_direction(self, ref, ds, active):
@@ -108,9 +111,10 @@ def emission_mis(scene, emitters: EmitterSelection, mis: MIS, si, prev_si,
     return w_b * ds.emitter.eval(si, prev_bsdf_pdf > 0)
 
 
-def sample_emitter(emitters: EmitterSelection, si, u: mi.Point2f, active):
+def sample_emitter(emitters: EmitterSelection, si, u: mi.Point2f, active,
+                   test_visibility: bool = True):
     """Next-event estimation, first half: ``(ds, Le / p_l, wo local, active)``."""
-    ds, em_weight = emitters.sample_direction(si, u, active)
+    ds, em_weight = emitters.sample_direction(si, u, active, test_visibility)
     # Not `active &= ...`: that would shrink the caller's mask in place.
     return ds, em_weight, si.to_local(ds.d), active & (ds.pdf != 0)
 
@@ -150,12 +154,13 @@ class RussianRoulette:
             s = dr.maximum(s, self.min_survival)
         return s
 
-    def apply(self, beta, eta, depth, u):
+    def apply(self, beta, eta, depth, u, active=True):
         """Returns ``(beta, alive)``; ``u`` is drawn by the caller on every lane
-        (Mitsuba draws it whether or not roulette is active)."""
+        (Mitsuba draws it whether or not roulette is active). Lanes outside
+        ``active`` play no roulette."""
         beta_max = dr.max(mi.unpolarized_spectrum(beta))
         s = self.survival_probability(beta_max, eta)
-        rr_active = depth >= self.rr_depth
+        rr_active = active & (depth >= self.rr_depth)
         beta[rr_active] *= dr.rcp(s)
         alive = (~rr_active | (u < s)) & (beta_max != 0)
         return beta, alive
