@@ -235,7 +235,7 @@ class VolpathDelta(PathRR):
             beta, alive = self.rr.apply(beta, eta, depth, sampler.next_1d(), real)
 
             # ------------------------------ advance ------------------------------
-            active = alive & ((real & (depth < max_depth)) | (null & (depth < max_depth)))
+            active = alive & (real | null) & (depth < max_depth)
             active &= ~(scattered & (phase_pdf_s <= 0))
 
         return dr.select(valid_ray, L, 0.0), valid_ray

@@ -176,6 +176,18 @@ class FreeFlight:
         self.scattered, self.t, self.beta, self.r_u, self.L_e = scattered, t, beta, r_u, L_e
 
 
+def _advance_segment(tracker: MediumTracker, dda, t, t_seg, sigma_maj, active, minorant: bool):
+    """Where position ``t`` has used up its majorant segment, fetch the next one (lanes
+    whose DDA is exhausted leave). Returns ``(active, fetched, t_seg, sigma_maj,
+    sigma_min, dda)``; ``sigma_min`` is valid where fetched (0 without ``minorant``)."""
+    exhausted = t >= t_seg
+    active = active & ~(exhausted & (dda.t >= dda.t_end))
+    fetch = active & exhausted
+    _, t1, maj, low, dda = tracker.grid.next_bounds(dda, fetch, minorant=minorant)
+    return (active, fetch, dr.select(fetch, t1, t_seg), dr.select(fetch, maj, sigma_maj),
+            low, dda)
+
+
 @dr.syntax
 def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
                    beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, spectral: bool,
@@ -216,12 +228,8 @@ def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampl
 
     while dr.hint(active, label="delta_tracking"):
         # ------------------- next majorant segment when used up -------------------
-        exhausted = t >= t_seg
-        active &= ~(exhausted & (dda.t >= dda.t_end))
-        fetch = active & exhausted
-        _, t1, maj, _, dda = tracker.grid.next_bounds(dda, fetch, minorant=False)
-        t_seg[fetch] = t1
-        sigma_maj[fetch] = maj
+        active, fetch, t_seg, sigma_maj, _, dda = _advance_segment(
+            tracker, dda, t, t_seg, sigma_maj, active, minorant=False)
 
         # --------------- tentative collision in this segment, or move on ---------------
         seg_tau = dr.select(sigma_maj > 0, sigma_maj * (t_seg - t), 0.0)
@@ -290,12 +298,8 @@ def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sample
     active = mi.Bool(active) & (tmin < tmax)
 
     while dr.hint(active, label="transmittance"):
-        exhausted = t >= t_seg
-        active &= ~(exhausted & (dda.t >= dda.t_end))
-        fetch = active & exhausted
-        _, t1, maj, low, dda = tracker.grid.next_bounds(dda, fetch, minorant=residual)
-        t_seg[fetch] = t1
-        sigma_maj[fetch] = maj
+        active, fetch, t_seg, sigma_maj, low, dda = _advance_segment(
+            tracker, dda, t, t_seg, sigma_maj, active, minorant=residual)
         if dr.hint(residual, mode="scalar"):
             sigma_c[fetch] = low
 
