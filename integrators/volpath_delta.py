@@ -11,7 +11,8 @@ from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
 from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission_mis,
                                      emitter_contribution)
 from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, SceneMedia, delta_tracking,
-                                      homogeneous_free_flight, shadow_transmittance)
+                                      homogeneous_free_flight, medium_interaction,
+                                      shadow_transmittance)
 
 VARIANT = mi.variant()
 
@@ -142,9 +143,8 @@ class VolpathDelta(PathRR):
             homogeneous = mi.Bool(False)
             if dr.hint(media.homogeneous, mode="scalar"):
                 homogeneous = in_medium & medium.is_homogeneous()
-                mei_h = dr.zeros(mi.MediumInteraction3f)
-                mei_h.p = ray.o
-                sigma_s, _, sigma_t = medium.get_scattering_coefficients(mei_h, homogeneous)
+                sigma_s, _, sigma_t = medium.get_scattering_coefficients(
+                    medium_interaction(ray, 0.0), homogeneous)
                 t_h, scattered_h, w_h, r_u_h = homogeneous_free_flight(
                     mi.Spectrum(sigma_t), si.t, sampler.next_1d(homogeneous),
                     media.spectral_homogeneous, hero, r_u)
@@ -165,13 +165,7 @@ class VolpathDelta(PathRR):
                 scattered |= heterogeneous & ff.scattered
                 t_s[heterogeneous] = ff.t
 
-            mei = dr.zeros(mi.MediumInteraction3f)
-            mei.t = t_s
-            mei.p = ray(t_s)
-            mei.wi = -ray.d
-            mei.sh_frame = mi.Frame3f(mei.wi)
-            mei.time = ray.time
-            mei.wavelengths = ray.wavelengths
+            mei = medium_interaction(ray, t_s)
             mei.medium = medium
 
             # ------------------------ emission with MIS ------------------------

@@ -156,12 +156,13 @@ class MediumTracker:
         return mi.Spectrum(sigma_t), mi.Spectrum(sigma_s), mi.Spectrum(0.0)
 
 
-def _point(ray: mi.Ray3f, t: mi.Float) -> mi.MediumInteraction3f:
-    """A medium interaction at ``ray(t)``, enough for coefficient lookups."""
+def medium_interaction(ray: mi.Ray3f, t: mi.Float) -> mi.MediumInteraction3f:
+    """A medium interaction at ``ray(t)`` (coefficient lookups, phase functions)."""
     mei = dr.zeros(mi.MediumInteraction3f)
     mei.t = t
     mei.p = ray(t)
     mei.wi = -ray.d
+    mei.sh_frame = mi.Frame3f(mei.wi)
     mei.time = ray.time
     mei.wavelengths = ray.wavelengths
     return mei
@@ -237,7 +238,7 @@ def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampl
         t[active] = dr.select(collide, t + tau / sigma_maj, t_seg)
         tau[active & ~collide] = tau - seg_tau
 
-        mei = _point(ray, t)
+        mei = medium_interaction(ray, t)
         sigma_t, sigma_s, Le = tracker.coefficients(mei, collide)
         sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
         if dr.hint(emission, mode="scalar"):
@@ -312,7 +313,7 @@ def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sample
         t[active] += step
         tau[active & ~collide] = tau - seg_tau
 
-        sigma_t = tracker.sigma_t(_point(ray, t), collide)
+        sigma_t = tracker.sigma_t(medium_interaction(ray, t), collide)
         sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
         if dr.hint(method == "track_length", mode="scalar"):
             q = dr.max(sigma_n) / sigma_maj
@@ -408,7 +409,7 @@ def _media_transmittance(media: SceneMedia, medium: mi.MediumPtr, ray: mi.Ray3f,
     homogeneous = mi.Bool(False)
     if media.homogeneous:
         homogeneous = in_medium & medium.is_homogeneous()
-        _, _, sigma_t = medium.get_scattering_coefficients(_point(ray, 0.0), homogeneous)
+        _, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0), homogeneous)
         T[homogeneous] = homogeneous_transmittance(mi.Spectrum(sigma_t), t_max)
     if media.heterogeneous:
         heterogeneous = in_medium & ~homogeneous

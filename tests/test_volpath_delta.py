@@ -13,14 +13,13 @@ Analytic answers used here:
 """
 from __future__ import annotations
 
-import time
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SCENES, assert_mean_equals, assert_same_expectation, estimate, load
+from helpers import SCENES, assert_same_expectation, estimate, load
 from mitsuba_plugins import stats, tracking
 
 RES = 32
@@ -61,9 +60,8 @@ def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4):
 
 
 def homogeneous(sigma_t, albedo=0.8, g=None):
-    sigma = {"type": "rgb", "value": sigma_t} if isinstance(sigma_t, list) else sigma_t
-    medium = {"type": "homogeneous", "sigma_t": sigma, "albedo": albedo}
-    if isinstance(sigma_t, list):
+    medium = {"type": "homogeneous", "sigma_t": sigma_t, "albedo": albedo}
+    if isinstance(sigma_t, list):  # rgb values must be <= 1: normalise, move the max to scale
         medium["sigma_t"] = {"type": "rgb", "value": [s / max(sigma_t) for s in sigma_t]}
         medium["scale"] = max(sigma_t)
     if g is not None:
