@@ -16,8 +16,9 @@ from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, SceneMedia, delt
 
 VARIANT = mi.variant()
 
-#: Default shadow-ray estimator: the most efficient inside the integrator on both
-#: heterogeneous scenes of benchmarks/results/volpath_delta.md (by 0.5-6%).
+#: Default shadow-ray estimator: most efficient inside the integrator on the sparse smoke
+#: of benchmarks/results/volpath_delta.md, within 4% of residual tracking on the dense
+#: medium; the estimators differ by about the run-to-run variation there.
 DEFAULT_TRANSMITTANCE = "track_length"
 
 
