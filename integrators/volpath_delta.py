@@ -10,9 +10,9 @@ from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
 from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission_mis,
                                      emitter_contribution)
-from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, SceneMedia, delta_tracking,
-                                      homogeneous_free_flight, medium_interaction,
-                                      shadow_transmittance)
+from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, FreeFlight, SceneMedia,
+                                      delta_tracking, homogeneous_free_flight,
+                                      medium_interaction, shadow_transmittance)
 
 VARIANT = mi.variant()
 
@@ -20,6 +20,16 @@ VARIANT = mi.variant()
 #: of benchmarks/results/volpath_delta.md, within 4% of residual tracking on the dense
 #: medium; the estimators differ by about the run-to-run variation there.
 DEFAULT_TRANSMITTANCE = "track_length"
+
+
+class VolumeContext:
+    """What the medium phase of a path needs besides its loop state, for one render:
+    the scene, its media, emitter selection, sampler, phase-function context, hero
+    channel and shadow-ray transmittance method. A plain holder, never loop state."""
+
+    def __init__(self, scene, media, emitters, sampler, phase_ctx, hero, method):
+        self.scene, self.media, self.emitters, self.sampler = scene, media, emitters, sampler
+        self.phase_ctx, self.hero, self.method = phase_ctx, hero, method
 
 
 class VolpathDelta(PathRR):
@@ -117,6 +127,8 @@ class VolpathDelta(PathRR):
         if dr.hint(spectral, mode="scalar"):
             n = dr.size_v(mi.Spectrum)
             hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
+        ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
+                            self.shadow_method())
 
         # ------------------------------ loop state ------------------------------
         ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -139,32 +151,15 @@ class VolpathDelta(PathRR):
 
             # ------------------- free flight through the medium -------------------
             in_medium = active & (medium != None)  # noqa: E711
-            scattered = mi.Bool(False)
-            t_s = mi.Float(0.0)
-            homogeneous = mi.Bool(False)
-            if dr.hint(media.homogeneous, mode="scalar"):
-                homogeneous = in_medium & medium.is_homogeneous()
-                sigma_s, _, sigma_t = medium.get_scattering_coefficients(
-                    medium_interaction(ray, 0.0), homogeneous)
-                t_h, scattered_h, w_h, r_u_h = homogeneous_free_flight(
-                    mi.Spectrum(sigma_t), si.t, sampler.next_1d(homogeneous),
-                    media.spectral_homogeneous, hero, r_u)
-                beta[homogeneous] *= dr.select(scattered_h, mi.Spectrum(sigma_s) * w_h, w_h)
-                if dr.hint(media.spectral_homogeneous, mode="scalar"):
-                    r_u[homogeneous] = r_u_h
-                scattered |= homogeneous & scattered_h
-                t_s[homogeneous] = t_h
-            if dr.hint(media.heterogeneous, mode="scalar"):
-                heterogeneous = in_medium & ~homogeneous
-                ff = media.call(medium, delta_tracking, ray, si.t, sampler, beta, r_u, hero,
-                                media.spectral, media.emission, heterogeneous)
-                beta[heterogeneous] = ff.beta
-                r_u[heterogeneous] = ff.r_u
-                if dr.hint(media.emission, mode="scalar"):
-                    L[heterogeneous] += ff.L_e
-                    valid_ray |= heterogeneous & dr.any(ff.L_e != 0)
-                scattered |= heterogeneous & ff.scattered
-                t_s[heterogeneous] = ff.t
+            flight = self.free_flight(ctx, medium, ray, si.t, beta, r_u,
+                                      in_medium & (depth + 1 < max_depth), in_medium)
+            beta = flight.beta
+            r_u = flight.r_u
+            scattered = flight.scattered
+            t_s = flight.t
+            if dr.hint(self.gathers_medium_light(media), mode="scalar"):
+                L += flight.L_e
+                valid_ray |= dr.any(flight.L_e != 0)
 
             mei = medium_interaction(ray, t_s)
             mei.medium = medium
@@ -195,7 +190,7 @@ class VolpathDelta(PathRR):
             shadow_medium = dr.select(on_surface & si.is_medium_transition(),
                                       si.target_medium(ds.d), medium)
             T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
-                                     self.transmittance, active_em)
+                                     ctx.method, active_em)
 
             # ---------------------- BSDF or phase sampling ----------------------
             u1 = sampler.next_1d()
@@ -234,6 +229,62 @@ class VolpathDelta(PathRR):
             active &= ~(scattered & (phase_pdf_s <= 0))
 
         return dr.select(valid_ray, L, 0.0), valid_ray
+
+    # -- the medium phase, overridden by volpath_raymarch ----------------------------
+    def shadow_method(self):
+        """Shadow-ray transmittance estimator handed to :func:`shadow_transmittance`."""
+        return self.transmittance
+
+    def gathers_medium_light(self, media: SceneMedia) -> bool:
+        """Whether flights gather light (``FreeFlight.L_e``) in this scene."""
+        return media.emission
+
+    def free_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
+                    t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum, nee: mi.Bool,
+                    active: mi.Bool) -> FreeFlight:
+        """The flight of ``ray`` through its medium up to the surface at ``t_max``: where
+        it collides (if it does), the throughput and spectral-MIS ratios after it and
+        the medium light gathered (times ``beta``). Lanes outside media keep their
+        values. ``nee``: lanes whose depth allows an emitter sample in the medium."""
+        flight = FreeFlight(mi.Bool(False), mi.Float(0.0), mi.Spectrum(beta), mi.Spectrum(r_u),
+                            mi.Spectrum(0.0))
+        in_medium = active & (medium != None)  # noqa: E711
+        homogeneous = mi.Bool(False)
+        if ctx.media.homogeneous:
+            homogeneous = in_medium & medium.is_homogeneous()
+            self.homogeneous_flight(flight, ctx, medium, ray, t_max, nee, homogeneous)
+        if ctx.media.heterogeneous:
+            heterogeneous = in_medium & ~homogeneous
+            out = self.heterogeneous_flight(ctx, medium, ray, t_max, beta, r_u, nee,
+                                            heterogeneous)
+            flight.scattered |= heterogeneous & out.scattered
+            flight.t[heterogeneous] = out.t
+            flight.beta[heterogeneous] = out.beta
+            flight.r_u[heterogeneous] = out.r_u
+            flight.L_e[heterogeneous] = out.L_e
+        return flight
+
+    def homogeneous_flight(self, flight: FreeFlight, ctx: VolumeContext, medium: mi.MediumPtr,
+                           ray: mi.Ray3f, t_max: mi.Float, nee: mi.Bool, active: mi.Bool):
+        """Analytic free flight on the ``active`` lanes (updates ``flight`` in place)."""
+        sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
+                                                                 active)
+        spectral = ctx.media.spectral_homogeneous
+        t, scattered, weight, r_u = homogeneous_free_flight(
+            mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), spectral, ctx.hero,
+            flight.r_u)
+        flight.beta[active] *= dr.select(scattered, mi.Spectrum(sigma_s) * weight, weight)
+        if spectral:
+            flight.r_u[active] = r_u
+        flight.scattered |= active & scattered
+        flight.t[active] = t
+
+    def heterogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
+                             t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
+                             nee: mi.Bool, active: mi.Bool) -> FreeFlight:
+        """Delta tracking on the ``active`` lanes."""
+        return ctx.media.call(medium, delta_tracking, ray, t_max, ctx.sampler, beta, r_u,
+                              ctx.hero, ctx.media.spectral, ctx.media.emission, active)
 
     def to_string(self):
         return (f"VolpathDelta[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"

@@ -14,7 +14,8 @@ from mitsuba_plugins import stats
 
 #: Our plugin -> the Mitsuba built-in that estimates the same quantity, and the
 #: parameters of ours that the built-in understands (passed on to the reference).
-BUILTIN = {"direct_mis": "direct", "path_rr": "path", "volpath_delta": "volpath"}
+BUILTIN = {"direct_mis": "direct", "path_rr": "path", "volpath_delta": "volpath",
+           "volpath_raymarch": "volpath"}
 BUILTIN_PARAMS = {
     "direct": ("shading_samples", "emitter_samples", "bsdf_samples", "hide_emitters"),
     "path": ("max_depth", "rr_depth", "hide_emitters"),

@@ -20,9 +20,11 @@ PLUGINS = {
     "path_rr": "mitsuba_plugins.integrators.path_rr",
     "grid_medium": "mitsuba_plugins.media.grid_medium",
     "volpath_delta": "mitsuba_plugins.integrators.volpath_delta",
+    "volpath_raymarch": "mitsuba_plugins.integrators.volpath_raymarch",
 }
 #: shared modules whose classes bind variant types at import; re-imported first
-SUPPORT_MODULES = ("mitsuba_plugins.majorant", "mitsuba_plugins.tracking")
+SUPPORT_MODULES = ("mitsuba_plugins.majorant", "mitsuba_plugins.tracking",
+                   "mitsuba_plugins.marching")
 #: plugins that are not integrators, by kind
 KINDS = {"grid_medium": "medium"}
 

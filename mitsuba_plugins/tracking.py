@@ -98,12 +98,26 @@ def homogeneous_free_flight(sigma_t: mi.Spectrum, t_max: mi.Float, u: mi.Float, 
         return t, scattered, mi.Spectrum(weight), r_u
     t = sample_exponential(u, index_channel(sigma_t, hero))
     scattered = t < t_max
-    d = dr.select(scattered, t, t_max)
-    exponent = sigma_t * d                      # optical depth per channel
-    rel = dr.exp(dr.min(exponent) - exponent)   # T_k / max_k T_k, in (0, 1]
+    weight, r_u = spectral_flight_weight(sigma_t * dr.select(scattered, t, t_max), sigma_t,
+                                         scattered, r_u)
+    return t, scattered, weight, r_u
+
+
+def spectral_flight_weight(tau: mi.Spectrum, sigma_t: mi.Spectrum, scattered: mi.Bool,
+                           r_u: mi.Spectrum):
+    """Balance-heuristic weight of a flight drawn with one channel's extinction, over
+    which channel drew it (one-sample MIS at the level of the whole path).
+
+    ``tau``: optical depth per channel along the flight; ``sigma_t``: extinction at its
+    end (used where ``scattered``). Channel ``k`` would have drawn this event with pdf
+    ``p_k = sigma_t[k] T_k`` (collision) or ``T_k`` (passing through), ``T_k =
+    exp(-tau[k])``. Returns ``(T / mean(r_u p), r_u p / mean(r_u p))``. Exponentials are
+    taken relative to the largest, so optical depths of 1e4 do not give 0/0.
+    """
+    rel = dr.exp(dr.min(tau) - tau)             # T_k / max_k T_k, in (0, 1]
     p = dr.select(scattered, sigma_t * rel, rel)
     norm = dr.rcp(dr.mean(r_u * p))
-    return t, scattered, mi.Spectrum(rel * norm), r_u * p * norm
+    return mi.Spectrum(rel * norm), r_u * p * norm
 
 
 def homogeneous_transmittance(sigma_t: mi.Spectrum, distance: mi.Float) -> mi.Spectrum:
@@ -403,7 +417,10 @@ class SceneMedia:
 def _media_transmittance(media: SceneMedia, medium: mi.MediumPtr, ray: mi.Ray3f, t_max: mi.Float,
                          sampler: mi.Sampler, method: str, active: mi.Bool) -> mi.Spectrum:
     """Transmittance over ``[0, t_max]`` of each lane's current medium: analytic in
-    homogeneous media, estimated by ``method`` in heterogeneous ones."""
+    homogeneous media, estimated by ``method`` in heterogeneous ones: the name of one
+    of :data:`TRANSMITTANCE_ESTIMATORS`, or an object whose ``transmittance(tracker,
+    ray, t_max, sampler, active)`` computes it (e.g. a
+    :class:`~mitsuba_plugins.marching.Marcher`)."""
     T = mi.Spectrum(1.0)
     in_medium = active & (medium != None)  # noqa: E711
     homogeneous = mi.Bool(False)
@@ -413,7 +430,10 @@ def _media_transmittance(media: SceneMedia, medium: mi.MediumPtr, ray: mi.Ray3f,
         T[homogeneous] = homogeneous_transmittance(mi.Spectrum(sigma_t), t_max)
     if media.heterogeneous:
         heterogeneous = in_medium & ~homogeneous
-        T_het = media.call(medium, transmittance, ray, t_max, sampler, method, heterogeneous)
+        if isinstance(method, str):
+            T_het = media.call(medium, transmittance, ray, t_max, sampler, method, heterogeneous)
+        else:
+            T_het = media.call(medium, method.transmittance, ray, t_max, sampler, heterogeneous)
         T[heterogeneous] = T_het
     return T
 

@@ -19,61 +19,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SCENES, assert_same_expectation, estimate, load
+from helpers import (RES, SPARSE, assert_same_expectation, camera, estimate,
+                     exact_optical_depth, grid, homogeneous, load, media_scene,
+                     segment)
 from mitsuba_plugins import stats, tracking
 
-RES = 32
 DEPTH = 8
-SMOKE = str(SCENES / "data" / "smoke.vol")
-SPARSE = str(SCENES / "data" / "sparse.vol")
-
-
-def _sensor(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None):
-    sensor = {"type": "perspective", "fov": fov,
-              "to_world": mi.ScalarTransform4f().look_at(list(origin), [0, 0, 0], [0, 1, 0]),
-              "film": {"type": "hdrfilm", "width": res, "height": res,
-                       "rfilter": {"type": "box"}},
-              "sampler": {"type": "independent", "sample_count": 16}}
-    if medium is not None:
-        sensor["medium"] = medium
-    return sensor
-
-
-def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4):
-    """A unit sphere holding ``medium`` behind ``bsdf`` (null by default) over a
-    diffuse floor, lit by a small spherical light and a constant environment."""
-    scene = {
-        "type": "scene",
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": env}},
-        "light": {"type": "sphere", "center": [1.6, 2.2, 1.2], "radius": 0.25,
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 40.0}}},
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().translate([0, -1.05, 0]).rotate(
-                      [1, 0, 0], -90).scale(4),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}},
-        "sensor": sensor or _sensor(),
-    }
-    if medium is not None:
-        scene["ball"] = {"type": "sphere", "bsdf": bsdf or {"type": "null"}, "interior": medium}
-    scene.update(extra or {})
-    return mi.load_dict(scene)
-
-
-def homogeneous(sigma_t, albedo=0.8, g=None):
-    medium = {"type": "homogeneous", "sigma_t": sigma_t, "albedo": albedo}
-    if isinstance(sigma_t, list):  # rgb values must be <= 1: normalise, move the max to scale
-        medium["sigma_t"] = {"type": "rgb", "value": [s / max(sigma_t) for s in sigma_t]}
-        medium["scale"] = max(sigma_t)
-    if g is not None:
-        medium["phase"] = {"type": "hg", "g": g}
-    return medium
-
-
-def grid(filename=SMOKE, scale=8.0, albedo=0.85, to_world=None, **kw):
-    medium = {"type": "grid_medium", "filename": filename, "scale": scale, "albedo": albedo,
-              "to_world": to_world or mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}
-    medium.update(kw)
-    return medium
 
 
 def _against_volpath(scene, name, max_depth=DEPTH, **ours):
@@ -106,7 +57,7 @@ def _camera_inside():
     fog = {"type": "ref", "id": "fog"}
     return media_scene(
         homogeneous(1.5, albedo=0.9, g=0.3),
-        sensor=_sensor(medium=fog),
+        sensor=camera(medium=fog),
         extra={"fog": homogeneous(0.15, albedo=0.9),
                "room": {"type": "sphere", "radius": 6.0, "bsdf": {"type": "null"},
                         "interior": fog}})
@@ -197,7 +148,7 @@ def test_furnace(medium):
         "type": "scene",
         "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "ball": {"type": "sphere", "bsdf": {"type": "null"}, "interior": FURNACE_MEDIA[medium]},
-        "sensor": _sensor(res=16, fov=30.0)})
+        "sensor": camera(res=16, fov=30.0)})
     img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "volpath_delta"}),
                              seed=7, spp=64))
     assert np.isfinite(img).all()
@@ -256,29 +207,9 @@ def random_grid(tmp_path_factory):
                          "sigma_t": [1.0, 0.4, 0.1], "majorant_resolution": 4})
 
 
-def _segment(n):
-    o = mi.Point3f(-0.2, 0.13, 0.31)
-    d = dr.normalize(mi.Vector3f(1.0, 0.7, 0.4))
-    return mi.Ray3f(dr.zeros(mi.Point3f, n) + o, dr.zeros(mi.Vector3f, n) + d), 1.6
-
-
-def exact_optical_depth(medium, steps=40000):
-    """Midpoint rule over the segment (error ~1e-7 for this smooth trilinear field)."""
-    ray, length = _segment(1)
-    t = (dr.arange(mi.Float, steps) + 0.5) * (length / steps)
-    mei = dr.zeros(mi.MediumInteraction3f, steps)
-    mei.p = ray.o + ray.d * t
-    sigma = np.array(medium.eval_sigma_t(mei))
-    # the medium exists inside its bounding box only (as for Mitsuba's media)
-    p = np.array(mei.p)
-    inside = np.all((p >= np.array(medium.bbox.min)[:, None]) &
-                    (p <= np.array(medium.bbox.max)[:, None]), axis=0)
-    return (sigma * inside).sum(axis=1) * length / steps
-
-
 def transmittance_samples(medium, method, n=1 << 16, seed=0):
     tracker = tracking.MediumTracker(medium)
-    ray, length = _segment(n)
+    ray, length = segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
     T = tracking.transmittance(tracker, ray, mi.Float(length), sampler, method, mi.Bool(True))
@@ -375,7 +306,7 @@ def test_tracking_code_is_traced_only_when_needed(monkeypatch):
         return original(*args)
     monkeypatch.setattr(volpath_delta, "delta_tracking", spy)
     integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 4})
-    mi.render(media_scene(homogeneous([0.1, 0.5, 1.0]), sensor=_sensor(res=4)),
+    mi.render(media_scene(homogeneous([0.1, 0.5, 1.0]), sensor=camera(res=4)),
               integrator=integrator, spp=1)
     assert calls == []
     mi.render(load("smoke", res=4), integrator=integrator, spp=1)
@@ -420,7 +351,7 @@ HARD = {
 @pytest.mark.parametrize("case", list(HARD))
 @pytest.mark.parametrize("method", tracking.TRANSMITTANCE_ESTIMATORS)
 def test_hard_cases_render_finite(case, method, tmp_path):
-    scene = media_scene(HARD[case](tmp_path), sensor=_sensor(res=16))
+    scene = media_scene(HARD[case](tmp_path), sensor=camera(res=16))
     img = np.array(mi.render(scene, integrator=mi.load_dict(
         {"type": "volpath_delta", "transmittance": method, "max_depth": 12}), seed=1, spp=16))
     assert np.isfinite(img).all() and (img >= 0).all(), case
