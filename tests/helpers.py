@@ -115,3 +115,41 @@ def exact_optical_depth(medium, steps=40000):
     inside = np.all((p >= np.array(medium.bbox.min)[:, None]) &
                     (p <= np.array(medium.bbox.max)[:, None]), axis=0)
     return (sigma * inside).sum(axis=1) * length / steps
+
+
+def hard_grid(tmp_path, kind):
+    """An 8^3 grid: all zero (``empty``) or one voxel of 1e4 (``one_voxel``)."""
+    data = np.zeros((8, 8, 8), np.float32)
+    if kind == "one_voxel":
+        data[4, 3, 5] = 1e4
+    path = tmp_path / f"{kind}.npy"
+    np.save(path, data)
+    return grid(filename=str(path), scale=1.0)
+
+
+#: media for the hard-case tests, by name: a function of a temporary folder
+HARD_MEDIA = {
+    "homogeneous_1e-4": lambda tmp: homogeneous(1e-4),
+    "homogeneous_1e4": lambda tmp: homogeneous(1e4),
+    "homogeneous_chromatic_extreme": lambda tmp: homogeneous([1e-4, 1.0, 1e4]),
+    "grid_1e-4": lambda tmp: grid(scale=1e-4),
+    "grid_1e4": lambda tmp: grid(scale=1e4),
+    "grid_chromatic_1e4": lambda tmp: grid(scale=1e4, sigma_t=[1.0, 1e-4, 0.0]),
+    "empty_grid": lambda tmp: hard_grid(tmp, "empty"),
+    "one_dense_voxel": lambda tmp: hard_grid(tmp, "one_voxel"),
+}
+
+
+def emissive_slab(Le: float, **medium) -> mi.Scene:
+    """A purely absorbing emissive ``grid_medium`` (``medium`` parameters) in the cube
+    [-1, 1]^3, seen head-on through its 2 units by an 8x8 orthographic sensor."""
+    return mi.load_dict({
+        "type": "scene",
+        "slab": {"type": "cube", "bsdf": {"type": "null"},
+                 "interior": {"type": "grid_medium", "albedo": 0.0, "emission": Le, **medium}},
+        "sensor": {"type": "orthographic",
+                   "to_world": mi.ScalarTransform4f().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0])
+                   @ mi.ScalarTransform4f().scale([0.5, 0.5, 1]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 16}}})

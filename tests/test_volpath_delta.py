@@ -19,9 +19,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import (RES, SPARSE, assert_same_expectation, camera, estimate,
-                     exact_optical_depth, grid, homogeneous, load, media_scene,
-                     segment)
+from helpers import (HARD_MEDIA as HARD, RES, SPARSE, assert_same_expectation, camera,
+                     emissive_slab, estimate, exact_optical_depth, grid, homogeneous, load,
+                     media_scene, segment)
 from mitsuba_plugins import stats, tracking
 
 DEPTH = 8
@@ -177,16 +177,7 @@ def test_emissive_absorbing_slab(case, tmp_path):
         params["filename"] = str(path)
         params["to_world"] = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)
     Le = 1.5
-    scene = mi.load_dict({
-        "type": "scene",
-        "slab": {"type": "cube", "bsdf": {"type": "null"},
-                 "interior": {"type": "grid_medium", "albedo": 0.0, "emission": Le, **params}},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0])
-                   @ mi.ScalarTransform4f().scale([0.5, 0.5, 1]),
-                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 16}}})
+    scene = emissive_slab(Le, **params)
     img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "volpath_delta"}),
                              seed=3, spp=256))
     for c in range(3):
@@ -327,27 +318,6 @@ def test_parameters():
 
 
 # -- hard cases --------------------------------------------------------------------------------
-def _hard_grid(tmp_path, kind):
-    data = np.zeros((8, 8, 8), np.float32)
-    if kind == "one_voxel":
-        data[4, 3, 5] = 1e4
-    path = tmp_path / f"{kind}.npy"
-    np.save(path, data)
-    return grid(filename=str(path), scale=1.0)
-
-
-HARD = {
-    "homogeneous_1e-4": lambda tmp: homogeneous(1e-4),
-    "homogeneous_1e4": lambda tmp: homogeneous(1e4),
-    "homogeneous_chromatic_extreme": lambda tmp: homogeneous([1e-4, 1.0, 1e4]),
-    "grid_1e-4": lambda tmp: grid(scale=1e-4),
-    "grid_1e4": lambda tmp: grid(scale=1e4),
-    "grid_chromatic_1e4": lambda tmp: grid(scale=1e4, sigma_t=[1.0, 1e-4, 0.0]),
-    "empty_grid": lambda tmp: _hard_grid(tmp, "empty"),
-    "one_dense_voxel": lambda tmp: _hard_grid(tmp, "one_voxel"),
-}
-
-
 @pytest.mark.parametrize("case", list(HARD))
 @pytest.mark.parametrize("method", tracking.TRANSMITTANCE_ESTIMATORS)
 def test_hard_cases_render_finite(case, method, tmp_path):

@@ -17,8 +17,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import (RES, SPARSE, assert_same_expectation, camera, estimate, grid,
-                     homogeneous, load, media_scene)
+from helpers import (HARD_MEDIA, RES, SPARSE, assert_same_expectation, camera,
+                     emissive_slab, estimate, grid, homogeneous, load, media_scene)
 from mitsuba_plugins import stats
 from mitsuba_plugins.params import PluginParameterError
 
@@ -123,18 +123,8 @@ def test_emissive_absorbing_slab(mode, tmp_path):
     path = tmp_path / "ones.npy"
     np.save(path, np.ones((4, 4, 4), np.float32))
     sigma, Le = np.array([0.5, 2.0, 4.0]), 1.5
-    scene = mi.load_dict({
-        "type": "scene",
-        "slab": {"type": "cube", "bsdf": {"type": "null"},
-                 "interior": {"type": "grid_medium", "albedo": 0.0, "emission": Le,
-                              "filename": str(path), "sigma_t": list(sigma / 4), "scale": 4.0,
-                              "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0])
-                   @ mi.ScalarTransform4f().scale([0.5, 0.5, 1]),
-                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 16}}})
+    scene = emissive_slab(Le, filename=str(path), sigma_t=list(sigma / 4), scale=4.0,
+                          to_world=mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2))
     img = np.array(mi.render(scene, integrator=mi.load_dict(_ours(mode=mode, step_size=0.3)),
                              seed=3, spp=256))
     for c in range(3):
@@ -173,26 +163,7 @@ def test_to_string_names_the_steps():
     assert "mode = single" in text and "step_mode = majorant" in text and "0.02" in text
 
 
-def _hard_grid(tmp_path, kind):
-    data = np.zeros((8, 8, 8), np.float32)
-    if kind == "one_voxel":
-        data[4, 3, 5] = 1e4
-    path = tmp_path / f"{kind}.npy"
-    np.save(path, data)
-    return grid(filename=str(path), scale=1.0)
-
-
-HARD = {
-    "homogeneous_1e-4": lambda tmp: homogeneous(1e-4),
-    "homogeneous_1e4": lambda tmp: homogeneous(1e4),
-    "homogeneous_chromatic_extreme": lambda tmp: homogeneous([1e-4, 1.0, 1e4]),
-    "grid_1e-4": lambda tmp: grid(scale=1e-4),
-    "grid_1e4": lambda tmp: grid(scale=1e4),
-    "grid_chromatic_1e4": lambda tmp: grid(scale=1e4, sigma_t=[1.0, 1e-4, 0.0]),
-    "sparse_grid": lambda tmp: grid(filename=SPARSE, scale=40.0),
-    "empty_grid": lambda tmp: _hard_grid(tmp, "empty"),
-    "one_dense_voxel": lambda tmp: _hard_grid(tmp, "one_voxel"),
-}
+HARD = {**HARD_MEDIA, "sparse_grid": lambda tmp: grid(filename=SPARSE, scale=40.0)}
 
 
 @pytest.mark.parametrize("case", list(HARD))
