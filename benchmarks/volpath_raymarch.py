@@ -6,19 +6,21 @@ volpath_delta and Mitsuba's volpath.
    is far below the noise of any independent reference we can afford (measured: at a
    step of 0.25, an eighth of the box, the smoke's squared relative bias is ~1e-6,
    while a 4096-spp volpath reference's own relMSE is ~4e-5). So each step's bias is
-   measured *paired*: against a fine march (step 1/64) rendered with the same seeds
-   (common random numbers; ``--bias-passes`` x ``--bias-spp``), whose difference has
-   far less variance. ``bias2 = mean(((a - f)^2 - var(a - f)) / (f^2 + eps))`` with
+   measured *paired*: against a fine march (step 1/64; 1/32 for ``single``, whose cost
+   grows with the square of the step count) rendered with the same seeds (common random
+   numbers; ``--bias-passes`` x ``--bias-spp`` at ``--bias-res``^2, ``single`` at an
+   eighth of the spp), whose difference has far less variance. A small image with many
+   samples per pixel resolves a smaller bias for the same work. ``bias2 = mean(((a - f)^2 - var(a - f)) / (f^2 + eps))`` with
    ``noise`` the subtracted variance (bias2 below ~noise is not resolved), and the
    image-mean bias ``mean(a) / mean(f) - 1``. The fine march itself is compared with
-   the independent unbiased reference (Mitsuba's volpath at ``--ref-spp`` in 16
+   the independent unbiased reference (Mitsuba's volpath at ``--bias-ref-spp`` in 16
    passes; on the chromatic scene volpath_delta, since volpath is biased there,
    VALIDATION.md) the same way, unpaired. The order is the slope of log |image-mean
    bias| against log(step) over the steps where that bias exceeds 3 standard errors.
 2. Error against time (smoke and sparse): each integrator renders passes of
    ``--curve-spp`` until ``--budget`` seconds are spent (compiled first); after each
-   pass the relative MSE of the running mean against the reference, minus the
-   reference's own variance, is recorded with the accumulated time. One log-log plot
+   pass the relative MSE of the running mean against a volpath reference at ``--res``^2
+   and ``--ref-spp`` (16 passes), minus the reference's own variance, is recorded with the accumulated time. One log-log plot
    per scene; a table gives the time each method takes to reach given errors.
 
 Writes ``benchmarks/results/volpath_raymarch.{md,json}`` and ``volpath_raymarch_<scene>.png``.
@@ -45,6 +47,9 @@ RESULTS = ROOT / "benchmarks" / "results"
 MAX_DEPTH = 16
 STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 FINE_STEP = 1 / 64
+#: ``single``: the fine step and the steps studied (each cell marches a shadow ray)
+SINGLE_FINE_STEP = 1 / 32
+SINGLE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 CURVE_STEPS = (0.5, 0.125, 0.03125)
 TARGET_ERRORS = (1e-2, 1e-3, 3e-4, 1e-4)
 
@@ -113,41 +118,46 @@ def order_of(steps, rows) -> float | None:
 
 def bias_study(res: int, args) -> dict:
     out = {}
-    studies = [("smoke", "volpath", "multi", MAX_DEPTH),
-               ("chromatic", "volpath_delta", "multi", MAX_DEPTH),
-               ("sparse", "volpath", "multi", MAX_DEPTH),
-               ("smoke", "volpath", "single", 2)]
-    refs = {}
-    for scene_name, ref_name, mode, depth in studies:
+    # (scene, reference, mode, max_depth, spp factor): the chromatic scene's bias is the
+    # smallest, so it gets 4x the samples; `single` an eighth (its cost is quadratic)
+    studies = [("smoke", "volpath", "multi", MAX_DEPTH, 1),
+               ("chromatic", "volpath_delta", "multi", MAX_DEPTH, 4),
+               ("sparse", "volpath", "multi", MAX_DEPTH, 1),
+               ("smoke", "volpath", "single", 2, 1 / 8)]
+    for scene_name, ref_name, mode, depth, factor in studies:
         scene = load(scene_name, res, depth)
-        key = (scene_name, ref_name, depth)
-        if key not in refs:
-            t = time.perf_counter()
-            refs[key] = Passes(scene, {"type": ref_name, "max_depth": depth}, 16,
-                               args.ref_spp // 16, seed=0)
-            print(f"reference {key}: {time.perf_counter() - t:.0f} s", flush=True)
+        t = time.perf_counter()
+        ref = Passes(scene, {"type": ref_name, "max_depth": depth}, 16, args.bias_ref_spp // 16,
+                     seed=0)
+        print(f"reference {scene_name} {ref_name} {depth}: {time.perf_counter() - t:.0f} s",
+              flush=True)
+        single = mode == "single"
+        spp = int(args.bias_spp * factor)
 
         def march(step):
             return Passes(scene, {"type": "volpath_raymarch", "mode": mode, "max_depth": depth,
-                                  "step_size": step}, args.bias_passes, args.bias_spp, seed=1000)
-        fine = march(FINE_STEP)
+                                  "step_size": step}, args.bias_passes, spp, seed=1000)
+        fine_step = SINGLE_FINE_STEP if single else FINE_STEP
+        steps = SINGLE_STEPS if single else STEPS
+        fine = march(fine_step)
         rows = []
-        for step in STEPS:
+        for step in steps:
             rows.append({"step": step, **paired_bias(march(step), fine)})
             print(f"  {scene_name} {mode} step {step}: {rows[-1]}", flush=True)
         resolved = [r for r in rows if r["bias2"] > 3 * r["noise"]]
         resolved_mean = [r for r in rows if abs(r["image_mean_bias"]) > 3 * r["image_mean_bias_se"]]
         out[f"{scene_name}_{mode}"] = {
-            "reference": ref_name, "max_depth": depth, "rows": rows,
-            "fine_vs_reference": {"step": FINE_STEP, **independent_bias(fine, refs[key])},
-            "order": order_of(STEPS, rows),
+            "reference": ref_name, "max_depth": depth, "rows": rows, "spp": spp,
+            "fine_step": fine_step,
+            "fine_vs_reference": {"step": fine_step, **independent_bias(fine, ref)},
+            "order": order_of(steps, rows),
             "bias2_halvings_resolved": max(0, len(resolved) - 1),
             "bias2_decreasing": all(b["bias2"] < a["bias2"] for a, b in zip(resolved, resolved[1:])),
             "mean_bias_halvings_resolved": max(0, len(resolved_mean) - 1),
             "mean_bias_decreasing": all(abs(b["image_mean_bias"]) < abs(a["image_mean_bias"])
                                         for a, b in zip(resolved_mean, resolved_mean[1:]))}
         print(f"  fine vs reference: {out[f'{scene_name}_{mode}']['fine_vs_reference']}", flush=True)
-    return out, refs
+    return out
 
 
 def curve(scene, integrator: dict, ref: Passes, spp: int, budget: float) -> list:
@@ -175,11 +185,14 @@ def time_to_reach(points, target: float):
     return None
 
 
-def curves(res: int, refs: dict, args) -> dict:
+def curves(res: int, args) -> dict:
     out = {}
     for scene_name in ("smoke", "sparse"):
         scene = load(scene_name, res)
-        ref = refs[(scene_name, "volpath", MAX_DEPTH)]
+        t = time.perf_counter()
+        ref = Passes(scene, {"type": "volpath", "max_depth": MAX_DEPTH}, 16, args.ref_spp // 16,
+                     seed=0)
+        print(f"reference {scene_name} volpath: {time.perf_counter() - t:.0f} s", flush=True)
         methods = {"volpath": {"type": "volpath", "max_depth": MAX_DEPTH},
                    "volpath_delta": {"type": "volpath_delta", "max_depth": MAX_DEPTH}}
         for step in CURVE_STEPS:
@@ -210,7 +223,7 @@ def plot(curve_data: dict, bias: dict, outdir: Path) -> list:
                 ax.axhline(rows[step]["bias2"], color="gray", linewidth=0.6, linestyle=":")
         ax.set_xlabel("render time (s)")
         ax.set_ylabel("relative MSE (reference noise removed)")
-        ax.set_title(f"{scene_name}: error against time (dotted: raymarch bias floors)")
+        ax.set_title(f"{scene_name}: error against time (dotted: bias floors, from the bias study)", fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
@@ -230,28 +243,29 @@ def markdown(result: dict) -> str:
     lines = [
         "# volpath_raymarch: bias per step, error against time",
         "",
-        f"{result['date']}, {result['cpu']}, llvm_ad_rgb, {cfg['res']}x{cfg['res']}. "
+        f"{result['date']}, {result['cpu']}, llvm_ad_rgb. "
         f"Command: `python3 benchmarks/volpath_raymarch.py` (this file is its output).",
         "",
         "## Bias per step size",
         "",
-        f"`mode=multi`, max_depth {MAX_DEPTH} (`smoke_single`: `mode=single`, max_depth 2); "
-        f"{cfg['bias_passes']} passes x {cfg['bias_spp']} spp per step, each paired (same "
-        f"seeds) with a fine march at step 1/64. bias^2: squared relative error of the mean "
+        f"{cfg['bias_res']}x{cfg['bias_res']} pixels. `mode=multi`, max_depth {MAX_DEPTH}: "
+        f"{cfg['bias_passes']} passes per step (spp per pass below), each paired (same "
+        f"seeds) with a fine march at step 1/64; `smoke_single`: `mode=single`, max_depth 2, "
+        f"fine step 1/32. bias^2: squared relative error of the mean "
         "with the variance of the paired difference (`noise`) subtracted; below ~noise it is not "
         "resolved. Image-mean bias: mean(step) / mean(fine) - 1 +- its standard error. The "
         "media boxes are 2 units wide, 48 voxels (0.042) across.",
         "",
-        "| scene | step | bias^2 (relMSE) | noise | image-mean bias | time (s) |",
-        "|---|---|---|---|---|---|",
+        "| scene | spp per pass | step | bias^2 (relMSE) | noise | image-mean bias | time (s) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, study in result["bias"].items():
         for r in study["rows"]:
-            lines.append(f"| {name} | {r['step']:g} | {_fmt(r['bias2'])} | {_fmt(r['noise'])} | "
+            lines.append(f"| {name} | {study['spp']} | {r['step']:g} | {_fmt(r['bias2'])} | {_fmt(r['noise'])} | "
                          f"{100 * r['image_mean_bias']:+.4f}% +- {100 * r['image_mean_bias_se']:.4f}% "
                          f"| {r['seconds']:.1f} |")
-    lines += ["", "The fine march (step 1/64) against the independent unbiased reference "
-              f"({cfg['ref_spp']} spp in 16 passes: volpath; volpath_delta for the chromatic "
+    lines += ["", "The fine march (step 1/64; 1/32 for `single`) against the independent unbiased reference "
+              f"({cfg['bias_ref_spp']} spp in 16 passes: volpath; volpath_delta for the chromatic "
               "scene, where volpath is biased):", "",
               "| scene | reference | bias^2 | noise | image-mean bias |", "|---|---|---|---|---|"]
     for name, study in result["bias"].items():
@@ -268,8 +282,9 @@ def markdown(result: dict) -> str:
                      f"{study['mean_bias_halvings_resolved']}: "
                      f"{'yes' if study['mean_bias_decreasing'] else 'NO'} |")
     lines += ["", "## Error against time", "",
-              f"Passes of {cfg['curve_spp']} spp until {cfg['budget']:g} s; relative MSE of the "
-              "running mean against the volpath reference minus the reference's variance. Time "
+              f"{cfg['res']}x{cfg['res']} pixels. Passes of {cfg['curve_spp']} spp until "
+              f"{cfg['budget']:g} s; relative MSE of the running mean against a volpath "
+              f"reference ({cfg['ref_spp']} spp) minus the reference's variance. Time "
               "(s) to reach each error; `-`: not reached within the budget (for raymarch: "
               "below its bias floor, or not yet). Fastest in bold.", ""]
     for scene_name, methods in result["curves"].items():
@@ -296,18 +311,21 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--res", type=int, default=64)
     parser.add_argument("--ref-spp", type=int, default=4096)
+    parser.add_argument("--bias-res", type=int, default=16)
+    parser.add_argument("--bias-ref-spp", type=int, default=65536)
     parser.add_argument("--bias-passes", type=int, default=8)
-    parser.add_argument("--bias-spp", type=int, default=128)
+    parser.add_argument("--bias-spp", type=int, default=16384)
     parser.add_argument("--curve-spp", type=int, default=4)
     parser.add_argument("--budget", type=float, default=20.0)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    bias, refs = bias_study(args.res, args)
-    curve_data = curves(args.res, refs, args)
+    bias = bias_study(args.bias_res, args)
+    curve_data = curves(args.res, args)
     result = {"date": datetime.date.today().isoformat(), "cpu": cpu_model(),
-              "config": {"res": args.res, "ref_spp": args.ref_spp, "bias_passes": args.bias_passes,
+              "config": {"res": args.res, "ref_spp": args.ref_spp, "bias_res": args.bias_res,
+                         "bias_ref_spp": args.bias_ref_spp, "bias_passes": args.bias_passes,
                          "bias_spp": args.bias_spp, "curve_spp": args.curve_spp,
                          "budget": args.budget, "steps": STEPS, "curve_steps": CURVE_STEPS},
               "bias": bias, "curves": curve_data}
