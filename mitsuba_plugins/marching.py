@@ -216,7 +216,7 @@ def march_flight(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler
 
     # ------------------------------ loop state ------------------------------
     tau_left = -dr.log(1.0 - sampler.next_1d(entered))  # hero optical depth to the collision
-    tau = mi.Spectrum(0.0)                               # optical depth so far, per channel
+    tau = mi.Spectrum(0.0)                               # optical depth so far (chromatic only)
     t = mi.Float(tmin)                                   # position reached
     sigma_t_c = mi.Spectrum(0.0)                         # extinction at the collision
     sigma_s_c = mi.Spectrum(0.0)                         # scattering at the collision
@@ -235,7 +235,8 @@ def march_flight(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler
         collide = active & (tau_left < cell_tau)
         d = dr.select(collide, tau_left / dr.select(collide, sigma_h, 1.0), t1 - t0)
         t[active] = t0 + d
-        tau[active] += sigma_t * d
+        if dr.hint(spectral, mode="scalar"):
+            tau[active] += sigma_t * d
         tau_left[active & ~collide] = tau_left - cell_tau
         sigma_t_c[collide] = sigma_t
         sigma_s_c[collide] = sigma_s
@@ -244,11 +245,12 @@ def march_flight(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler
         scattered |= collide
         active &= ~collide & (t1 < tmax)
 
-    weight = mi.Spectrum(dr.select(scattered, dr.rcp(dr.select(scattered, sigma_t_c[0], 1.0)),
-                                   1.0))
     if dr.hint(spectral, mode="scalar"):
         weight, r_u_new = spectral_flight_weight(tau, sigma_t_c, scattered, r_u)
         r_u = dr.select(entered, r_u_new, r_u)
+    else:
+        weight = mi.Spectrum(dr.select(scattered,
+                                       dr.rcp(dr.select(scattered, sigma_t_c[0], 1.0)), 1.0))
     beta_flight = dr.select(entered, beta * weight, beta)
     L_e = mi.Spectrum(0.0)
     if dr.hint(emission, mode="scalar"):

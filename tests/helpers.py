@@ -103,9 +103,10 @@ def segment(n):
     return mi.Ray3f(dr.zeros(mi.Point3f, n) + o, dr.zeros(mi.Vector3f, n) + d), 1.6
 
 
-def exact_optical_depth(medium, steps=40000):
-    """Midpoint rule over the segment (error ~1e-7 for this smooth trilinear field)."""
-    ray, length = segment(1)
+def exact_optical_depth(medium, steps=40000, ray_segment=None):
+    """Midpoint rule with ``steps`` points over ``ray_segment(1)`` (default
+    :func:`segment`; error ~1e-7 for its smooth trilinear field)."""
+    ray, length = (ray_segment or segment)(1)
     t = (dr.arange(mi.Float, steps) + 0.5) * (length / steps)
     mei = dr.zeros(mi.MediumInteraction3f, steps)
     mei.p = ray.o + ray.d * t
