@@ -16,9 +16,10 @@ from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, FreeFlight, Scen
 
 VARIANT = mi.variant()
 
-#: Default shadow-ray estimator: most efficient inside the integrator on the sparse smoke
-#: of benchmarks/results/volpath_delta.md, within 4% of residual tracking on the dense
-#: medium; the estimators differ by about the run-to-run variation there.
+#: Default shadow-ray estimator: chosen from the first benchmark run, where it led on both
+#: heterogeneous scenes. Inside the integrator the three estimators differ by about the
+#: run-to-run variation (3-13%); the committed run of benchmarks/results/volpath_delta.md
+#: has residual tracking ahead on both scenes.
 DEFAULT_TRANSMITTANCE = "track_length"
 
 
@@ -150,9 +151,8 @@ class VolpathDelta(PathRR):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
 
             # ------------------- free flight through the medium -------------------
-            in_medium = active & (medium != None)  # noqa: E711
             flight = self.free_flight(ctx, medium, ray, si.t, beta, r_u,
-                                      in_medium & (depth + 1 < max_depth), in_medium)
+                                      depth + 1 < max_depth, active)
             beta = flight.beta
             r_u = flight.r_u
             scattered = flight.scattered
@@ -245,7 +245,7 @@ class VolpathDelta(PathRR):
         """The flight of ``ray`` through its medium up to the surface at ``t_max``: where
         it collides (if it does), the throughput and spectral-MIS ratios after it and
         the medium light gathered (times ``beta``). Lanes outside media keep their
-        values. ``nee``: lanes whose depth allows an emitter sample in the medium."""
+        values. ``nee``: lanes whose depth allows an emitter sample in a medium."""
         flight = FreeFlight(mi.Bool(False), mi.Float(0.0), mi.Spectrum(beta), mi.Spectrum(r_u),
                             mi.Spectrum(0.0))
         in_medium = active & (medium != None)  # noqa: E711
