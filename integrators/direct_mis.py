@@ -8,6 +8,7 @@ from mitsuba_plugins.mis import HEURISTICS, MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
 from mitsuba_plugins.surface import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
                                      sample_emitter)
+from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
@@ -72,6 +73,7 @@ class DirectMIS(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
+        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
         p = Params(props, "direct_mis", self.ALLOWED)
         if p.has("shading_samples") and (p.has("emitter_samples") or p.has("bsdf_samples")):
             raise PluginParameterError(
@@ -142,7 +144,7 @@ class DirectMIS(mi.SamplingIntegrator):
             w_b = self.mis.weight(bs.pdf * self.frac_b, p_l * self.frac_l, False)
             L[active_b] += bsdf_weight * Le * w_b / self.bsdf_samples
 
-        return L, valid_ray, []
+        return self.sample_guard(L, active), valid_ray, []
 
     def to_string(self):
         return (f"DirectMIS[\n  emitter_samples = {self.emitter_samples},\n"

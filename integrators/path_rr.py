@@ -9,6 +9,7 @@ from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
 from mitsuba_plugins.surface import (EMITTER_SELECTIONS, RR_RULES, EmitterSelection,
                                      RussianRoulette, emission_mis, emitter_contribution,
                                      sample_emitter)
+from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
@@ -68,6 +69,7 @@ class PathRR(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
+        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
         p = Params(props, "path_rr", self.ALLOWED)
         self.max_depth = p.max_depth()
         self.rr = RussianRoulette(
@@ -83,7 +85,7 @@ class PathRR(mi.SamplingIntegrator):
         if self.max_depth == 0:
             return mi.Spectrum(0.0), mi.Bool(False), []
         L, valid_ray = self.trace(scene, sampler, ray, active)
-        return L, valid_ray, []
+        return self.sample_guard(L, active), valid_ray, []
 
     @dr.syntax
     def trace(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, active: mi.Bool):

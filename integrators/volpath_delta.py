@@ -13,6 +13,7 @@ from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission
 from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, FreeFlight, SceneMedia,
                                       delta_tracking, homogeneous_free_flight,
                                       medium_interaction, shadow_transmittance)
+from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
@@ -94,6 +95,7 @@ class VolpathDelta(PathRR):
 
     def __init__(self, props: mi.Properties):
         mi.SamplingIntegrator.__init__(self, props)
+        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
         p = Params(props, "volpath_delta", self.ALLOWED)
         self.max_depth = p.max_depth()
         self.rr = RussianRoulette(rr_depth=p.rr_depth())
@@ -112,7 +114,7 @@ class VolpathDelta(PathRR):
         else:
             medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
             L, valid_ray = self.trace_media(scene, sampler, ray, medium, media, active)
-        return L, valid_ray, []
+        return self.sample_guard(L, active), valid_ray, []
 
     @dr.syntax
     def trace_media(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,

@@ -13,6 +13,7 @@ from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params
 from mitsuba_plugins.surface import RussianRoulette
 from mitsuba_plugins.tracking import (FreeFlight, SceneMedia, homogeneous_transmittance,
                                       medium_interaction, shadow_transmittance)
+from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
@@ -91,6 +92,7 @@ class VolpathRaymarch(VolpathDelta):
 
     def __init__(self, props: mi.Properties):
         mi.SamplingIntegrator.__init__(self, props)
+        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
         p = Params(props, "volpath_raymarch", self.ALLOWED)
         self.mode = p.choice("mode", "multi", MODES)
         self.max_depth = p.max_depth()

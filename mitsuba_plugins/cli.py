@@ -43,36 +43,42 @@ def cmd_render(args) -> int:
     import mitsuba as mi
     import numpy as np
     from mitsuba_plugins.compare import load_scene, parse_integrator
+    from mitsuba_plugins.validity import counted, take_invalid_samples
     scene = load_scene(args.scene, args.res)
-    integrator = mi.load_dict(parse_integrator(args.integrator)) if args.integrator else None
+    integrator = counted(mi.load_dict(parse_integrator(args.integrator)) if args.integrator
+                         else scene.integrator())
     t0 = time.perf_counter()
     image = mi.render(scene, integrator=integrator, spp=args.spp or 0, seed=args.seed)
     dr.eval(image)
     dr.sync_thread()
     seconds = time.perf_counter() - t0
     array = np.array(image)
-    bad = int((~np.isfinite(array)).sum())
+    invalid = int((~np.isfinite(array)).sum()) + (take_invalid_samples(integrator) or 0)
     out = Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
     _write_outputs(array, out)
     print(f"wrote {out} and {out.with_suffix('.png')} ({seconds:.2f} s including compilation; "
-          f"{bad} NaN/Inf values)")
-    return 0
+          f"{invalid} NaN/Inf samples, zeroed)")
+    return 1 if invalid else 0
 
 
 def cmd_compare(args) -> int:
-    from mitsuba_plugins.compare import compare, format_table, parse_integrator
+    from mitsuba_plugins import report as rep
+    from mitsuba_plugins.compare import compare, parse_integrator
     integrators = [parse_integrator(s) for s in args.integrators.split(",") if s.strip()]
-    rows = compare(args.scene, integrators, spp=args.spp, passes=args.passes, ref_spp=args.ref_spp,
-                   res=args.res, cache_dir=Path(args.cache), seed=args.seed, progress=not args.quiet)
+    result = compare(args.scene, integrators, spp=args.spp, passes=args.passes,
+                     time_budget=args.time_budget, spp_per_pass=args.spp_per_pass,
+                     ref_spp=args.ref_spp, res=args.res, cache_dir=Path(args.cache),
+                     seed=args.seed, progress=not args.quiet)
     out = Path(args.output or Path("out") / "compare" / Path(args.scene).stem)
-    for row in rows:
-        _write_outputs(row.image, out / f"{row.integrator.replace(':', '_')}.exr")
-    print(f"\n{args.scene}: relative MSE = mean((x - ref)^2 / (ref^2 + 1e-2)); time = median of "
-          f"{args.passes} warm passes x {args.passes} (compilation excluded); efficiency = "
-          f"1 / (rel. MSE x time)\n")
-    print(format_table(rows))
-    print(f"\nimages: {out}/")
-    return 1 if any(r.invalid for r in rows) else 0
+    rep.write_all(result, out)
+    print()
+    print(rep.table(result))
+    print()
+    print(rep.legend(result))
+    invalid = sum(r.invalid for r in result.rows)
+    print(f"NaN/Inf samples: {invalid} (counted in every integrator's kernel, zeroed in the images)")
+    print(f"written to {out}/: table.md, table.csv, results.json, curves.png, panel.png, images")
+    return 1 if invalid else 0
 
 
 def cmd_grid_info(args) -> int:
@@ -102,9 +108,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("scene")
     c.add_argument("-i", "--integrators", required=True,
                    help="comma-separated, e.g. direct_mis,direct,path_rr:max_depth=5,path:max_depth=5")
-    c.add_argument("--spp", type=int, default=64, help="samples per pixel of each integrator (default 64)")
-    c.add_argument("--passes", type=int, default=4, help="timed passes the spp are split into (default 4)")
-    c.add_argument("--ref-spp", type=int, help="reference spp (default max(1024, 16 x spp))")
+    c.add_argument("--spp", type=int, default=64,
+                   help="equal-spp mode: samples per pixel of each integrator (default 64)")
+    c.add_argument("--passes", type=int, default=4,
+                   help="equal-spp mode: timed passes the spp are split into (default 4)")
+    c.add_argument("--time-budget", type=float, metavar="SECONDS",
+                   help="equal-time mode: each integrator renders passes until it has spent "
+                        "SECONDS (compilation excluded)")
+    c.add_argument("--spp-per-pass", type=int,
+                   help="samples per pass (default: spp / passes; 16 with --time-budget)")
+    c.add_argument("--ref-spp", type=int,
+                   help="reference spp (default max(1024, 16 x spp); 4096 with --time-budget)")
     c.add_argument("--res", type=int, help="image width/height, for scenes with a $res parameter")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--cache", default=".cache/references", help="reference cache folder")

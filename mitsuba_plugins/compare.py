@@ -1,11 +1,21 @@
 """Speed against error: render integrators on one scene and measure each against a
-high-spp reference from the matching Mitsuba built-in (ALGORITHMS.md section 1)."""
+high-spp reference from the matching Mitsuba built-in (ALGORITHMS.md section 1).
+
+Two modes. Equal spp: every integrator renders ``passes`` passes of ``spp / passes``
+samples. Equal time: every integrator renders passes of ``spp_per_pass`` samples until
+its ``time_budget`` is spent. In both, the integrators take turns pass by pass (so a slow
+drift of the machine affects all alike), every pass is timed after a warm-up render that
+compiles the kernel, and the running estimate's relative MSE is recorded after each pass:
+the error-against-time curve.
+"""
 from __future__ import annotations
 
 import hashlib
 import json
 import math
-from dataclasses import dataclass
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +32,9 @@ BUILTIN_PARAMS = {
     "volpath": ("max_depth", "rr_depth", "hide_emitters"),
 }
 REFERENCE_PASSES = 16
+#: a reference limits a measurement when its own rel. MSE exceeds this share of the
+#: measured (uncorrected) one
+FLOOR_SHARE = 0.25
 
 
 def parse_integrator(spec: str) -> dict:
@@ -72,16 +85,35 @@ def load_scene(path: str, res: int | None = None):
     return mi.load_file(str(path), **params)
 
 
+def scene_digest(scene_path: str) -> str:
+    """SHA-256 of the scene file and of every file it names (``filename`` parameters,
+    ``<include>``), so that a changed grid or mesh invalidates cached references."""
+    path = Path(scene_path)
+    digest = hashlib.sha256(path.read_bytes())
+    try:
+        elements = list(ET.parse(path).iter())
+    except ET.ParseError:
+        elements = []
+    for el in elements:
+        name = el.get("filename") if el.tag == "include" else (
+            el.get("value") if el.get("name") == "filename" else None)
+        dep = path.parent / name if name else None
+        if dep is not None and dep.is_file():
+            digest.update(name.encode() + b"\0" + hashlib.sha256(dep.read_bytes()).digest())
+    return digest.hexdigest()
+
+
 def cached_reference(scene, scene_path: str, res, reference: dict, spp: int, cache_dir: Path,
                      seed: int = 0x5EED0000, progress: bool = True) -> stats.Estimate:
-    """High-spp reference, cached on disk keyed by scene file content, resolution,
-    integrator, spp and variant."""
+    """High-spp reference (mean of 16 passes and its per-pixel standard error), cached on
+    disk keyed by scene content (:func:`scene_digest`), resolution, integrator, spp and
+    variant. Next to the ``.npz`` the mean and standard-error images are written as EXR."""
     import mitsuba as mi
     key = hashlib.sha256(json.dumps({
-        "scene": hashlib.sha256(Path(scene_path).read_bytes()).hexdigest(), "res": res,
+        "scene": scene_digest(scene_path), "res": res,
         "integrator": reference, "spp": spp, "variant": mi.variant(), "seed": seed,
     }, sort_keys=True).encode()).hexdigest()[:20]
-    path = cache_dir / f"{Path(scene_path).stem}-{reference['type']}-{spp}spp-{key}.npz"
+    path = Path(cache_dir) / f"{Path(scene_path).stem}-{reference['type']}-{spp}spp-{key}.npz"
     if path.exists():
         data = np.load(path)
         return stats.Estimate(data["mean"], data["se"], int(data["passes"]), int(data["spp_per_pass"]))
@@ -90,67 +122,193 @@ def cached_reference(scene, scene_path: str, res, reference: dict, spp: int, cac
                               seed=seed, warmup=False,
                               progress=f"reference {label(reference)} {spp} spp" if progress else None)
     if est.invalid:
-        raise RuntimeError(f"reference {label(reference)} produced {est.invalid} NaN/Inf values")
-    cache_dir.mkdir(parents=True, exist_ok=True)
+        raise RuntimeError(f"reference {label(reference)} produced {est.invalid} NaN/Inf samples")
+    path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, mean=est.mean, se=est.se, passes=est.passes, spp_per_pass=est.spp_per_pass)
+    for suffix, image in (("", est.mean), ("_se", est.se)):
+        mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32)).write(
+            str(path.with_name(path.stem + suffix + ".exr")))
     return est
+
+
+def reference_floor(ref: stats.Estimate) -> float:
+    """The reference's own relative MSE, mean(se^2 / (ref^2 + eps)).
+
+    An image ``x`` independent of the reference ``r`` has E[(x - r)^2] = MSE(x) + Var(r),
+    so this (unbiased, from the reference's passes) is subtracted from every measured
+    rel. MSE: a finite reference then does not flatten the ratios between integrators."""
+    return float(np.mean(ref.se ** 2 / (ref.mean ** 2 + stats.REL_MSE_EPS)))
 
 
 @dataclass
 class Row:
+    """One integrator's measurement. ``seconds`` is the sum of its timed passes."""
     integrator: str
-    reference: str
+    reference: str                       # label of the reference integrator
+    reference_spp: int
     spp: int
+    passes: int
     seconds: float
-    rel_mse: float
-    efficiency: float
-    invalid: int
+    rel_mse: float                       # measured minus the reference's own (reference_floor)
+    rel_mse_measured: float              # against the reference, uncorrected
+    efficiency: float                    # 1 / (rel. MSE x seconds)
+    invalid: int                         # NaN/Inf samples (counted in the kernel)
+    builtin: bool                        # a Mitsuba built-in (not one of our plugins)
     time_ratio: float = math.nan         # seconds / built-in's seconds (same reference)
+    rel_mse_ratio: float = math.nan      # rel. MSE / built-in's
     efficiency_ratio: float = math.nan   # efficiency / built-in's efficiency
+    curve_seconds: list = field(default_factory=list)   # cumulative time after each pass
+    curve_rel_mse: list = field(default_factory=list)   # rel. MSE of the running mean (corrected)
     image: np.ndarray | None = None
 
+    def to_dict(self) -> dict:
+        out = {k: v for k, v in self.__dict__.items() if k != "image"}
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in out.items()}
 
-def compare(scene_path: str, integrators: list[dict], spp: int, passes: int = 4,
-            ref_spp: int | None = None, res: int | None = None, cache_dir: Path = Path(".cache/references"),
-            seed: int = 0, progress: bool = True) -> list[Row]:
-    import mitsuba as mi
-    if spp < passes:
-        raise ValueError(f"--spp ({spp}) must be >= --passes ({passes})")
+
+@dataclass
+class Report:
+    """Outcome of :func:`compare`: rows, references (by label) and how they were made."""
+    scene: str
+    mode: str                            # "equal-spp" or "equal-time"
+    rows: list
+    references: dict                     # label -> stats.Estimate
+    time_budget: float | None = None
+    spp_per_pass: int = 0
+
+    def floors(self) -> dict:
+        return {k: reference_floor(v) for k, v in self.references.items()}
+
+    def to_dict(self) -> dict:
+        floors = self.floors()
+        return {"scene": self.scene, "mode": self.mode, "time_budget": self.time_budget,
+                "spp_per_pass": self.spp_per_pass,
+                "references": {k: {"spp": v.spp, "passes": v.passes, "rel_mse_floor": floors[k]}
+                               for k, v in self.references.items()},
+                "rel_mse_definition": f"mean((x - ref)^2 / (ref^2 + {stats.REL_MSE_EPS})) minus "
+                                      "the reference's own (rel_mse_floor)",
+                "rows": [r.to_dict() for r in self.rows]}
+
+
+class _Run:
+    """One integrator being measured: running sum, timed passes, curve."""
+
+    def __init__(self, spec: dict):
+        import mitsuba as mi
+        from mitsuba_plugins.validity import counted
+        self.spec = spec
+        self.reference_spec = reference_for(spec)
+        self.reference = label(self.reference_spec)
+        self.ref: stats.Estimate | None = None          # set with the reference (use_reference)
+        self.floor = 0.0
+        self.integrator = counted(mi.load_dict(spec))   # validates parameters first
+        self.total, self.passes, self.seconds, self.invalid = None, 0, 0.0, 0
+        self.curve_seconds, self.curve_rel_mse = [], []
+
+    def render(self, scene, spp: int, seed: int):
+        import drjit as dr
+        import mitsuba as mi
+        img = mi.render(scene, integrator=self.integrator, spp=spp, seed=seed)
+        dr.eval(img)
+        dr.sync_thread()
+        return img
+
+    def use_reference(self, ref: stats.Estimate):
+        self.ref, self.floor = ref, reference_floor(ref)
+
+    def warm_up(self, scene, spp: int):
+        from mitsuba_plugins.validity import take_invalid_samples
+        self.render(scene, spp, seed=0x7FFF0000)
+        take_invalid_samples(self.integrator)
+
+    def step(self, scene, spp: int, seed: int):
+        from mitsuba_plugins.validity import take_invalid_samples
+        t0 = time.perf_counter()
+        img = self.render(scene, spp, seed)
+        self.seconds += time.perf_counter() - t0
+        arr = np.array(img, dtype=np.float64)
+        bad = ~np.isfinite(arr)
+        self.invalid += int(bad.sum()) + (take_invalid_samples(self.integrator) or 0)
+        arr[bad] = 0.0
+        self.total = arr if self.total is None else self.total + arr
+        self.passes += 1
+        self.curve_seconds.append(self.seconds)
+        self.measured = stats.rel_mse(self.total / self.passes, self.ref.mean)
+        self.curve_rel_mse.append(self.measured - self.floor)
+
+    def row(self, spp_per_pass: int) -> Row:
+        err = self.curve_rel_mse[-1]
+        return Row(label(self.spec), self.reference, self.ref.spp, self.passes * spp_per_pass,
+                   self.passes, self.seconds, err, self.measured,
+                   stats.efficiency(err, self.seconds),
+                   self.invalid, self.spec["type"] not in BUILTIN,
+                   curve_seconds=list(self.curve_seconds), curve_rel_mse=list(self.curve_rel_mse),
+                   image=self.total / self.passes)
+
+
+def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int = 4,
+            time_budget: float | None = None, spp_per_pass: int | None = None,
+            ref_spp: int | None = None, res: int | None = None,
+            cache_dir: Path = Path(".cache/references"), seed: int = 0,
+            progress: bool = True) -> Report:
+    """Measure ``integrators`` on one scene, at equal spp (``spp`` in ``passes``) or, with
+    ``time_budget`` seconds, at equal time (passes of ``spp_per_pass``, default 16)."""
+    if spp_per_pass is not None and spp_per_pass < 1:
+        raise ValueError(f"--spp-per-pass must be >= 1; got {spp_per_pass}")
+    if ref_spp is not None and ref_spp < REFERENCE_PASSES:
+        raise ValueError(f"--ref-spp must be >= {REFERENCE_PASSES} (one per reference pass); "
+                         f"got {ref_spp}")
+    if time_budget is not None:
+        if not time_budget > 0:
+            raise ValueError(f"--time-budget must be > 0 seconds; got {time_budget}")
+        spp_per_pass = spp_per_pass or 16
+        ref_spp = ref_spp or 4096
+    else:
+        if passes < 1 or spp < passes:
+            raise ValueError(f"--spp ({spp}) must be >= --passes ({passes}) >= 1")
+        spp_per_pass = spp_per_pass or spp // passes
+        ref_spp = ref_spp or max(1024, 16 * spp)
+    if not integrators:
+        raise ValueError("no integrators given")
     scene = load_scene(scene_path, res)
-    ref_spp = ref_spp or max(1024, 16 * spp)
-    rows, references = [], {}
-    for integrator in integrators:
-        integ = mi.load_dict(integrator)  # validates parameters before any rendering
-        reference = reference_for(integrator)
-        ref_label = label(reference)
-        if ref_label not in references:
-            references[ref_label] = cached_reference(scene, scene_path, res, reference, ref_spp,
-                                                     Path(cache_dir), progress=progress)
-        ref = references[ref_label]
-        est = stats.render_passes(scene, passes, max(1, spp // passes), integrator=integ, seed=seed,
-                                  progress=label(integrator) if progress else None)
-        err = stats.rel_mse(est.mean, ref.mean)
-        rows.append(Row(label(integrator), f"{ref_label} @ {ref.spp} spp", est.spp, est.seconds, err,
-                        stats.efficiency(err, est.seconds), est.invalid, image=est.mean))
-    for row, integrator in zip(rows, integrators):
-        builtin = next((r for r, i in zip(rows, integrators)
-                        if i == reference_for(integrator) and r is not row), None)
+    references = {}
+    runs = [_Run(spec) for spec in integrators]   # loads (validates) before any rendering
+    for run in runs:
+        if run.reference not in references:
+            references[run.reference] = cached_reference(scene, scene_path, res, run.reference_spec,
+                                                         ref_spp, Path(cache_dir), progress=progress)
+        run.use_reference(references[run.reference])
+    for run in runs:
+        run.warm_up(scene, spp_per_pass)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=time_budget * len(runs) if time_budget else passes * len(runs),
+                   desc="equal time" if time_budget else "equal spp", leave=False,
+                   unit="s" if time_budget else "pass",
+                   bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} {unit}")
+    k = 0
+    while True:
+        todo = [r for r in runs if (r.seconds < time_budget if time_budget else r.passes < passes)]
+        if not todo:
+            break
+        for run in todo:                  # take turns, pass by pass
+            before = run.seconds
+            run.step(scene, spp_per_pass, seed + k)
+            if bar is not None:
+                bar.update(min(run.seconds, time_budget) - min(before, time_budget)
+                           if time_budget else 1)
+        k += 1
+    if bar is not None:
+        bar.close()
+    rows = [run.row(spp_per_pass) for run in runs]
+    for row, spec in zip(rows, integrators):
+        ref_spec = reference_for(spec)
+        builtin = next((r for r, s in zip(rows, integrators) if s == ref_spec and r is not row), None)
         if builtin is not None:
             row.time_ratio = row.seconds / builtin.seconds
+            row.rel_mse_ratio = row.rel_mse / builtin.rel_mse if builtin.rel_mse > 0 else math.nan
             row.efficiency_ratio = row.efficiency / builtin.efficiency
-    return rows
-
-
-def format_table(rows: list[Row]) -> str:
-    head = ("integrator", "reference", "spp", "time [s]", "rel. MSE", "efficiency",
-            "time / built-in", "eff. / built-in", "NaN/Inf")
-    body = [(r.integrator, r.reference, str(r.spp), f"{r.seconds:.3f}", f"{r.rel_mse:.3e}",
-             f"{r.efficiency:.4g}", _ratio(r.time_ratio), _ratio(r.efficiency_ratio), str(r.invalid))
-            for r in rows]
-    widths = [max(len(x) for x in col) for col in zip(head, *body)]
-    line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
-    return "\n".join([line(head), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [line(b) for b in body])
-
-
-def _ratio(x: float) -> str:
-    return "-" if math.isnan(x) else f"{x:.3f}"
+    return Report(str(scene_path), "equal-time" if time_budget else "equal-spp", rows, references,
+                  time_budget, spp_per_pass)

@@ -23,7 +23,7 @@ PLUGINS = {
     "volpath_raymarch": "mitsuba_plugins.integrators.volpath_raymarch",
 }
 #: shared modules whose classes bind variant types at import; re-imported first
-SUPPORT_MODULES = ("mitsuba_plugins.majorant", "mitsuba_plugins.tracking",
+SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.majorant", "mitsuba_plugins.tracking",
                    "mitsuba_plugins.marching")
 #: plugins that are not integrators, by kind
 KINDS = {"grid_medium": "medium"}

@@ -29,7 +29,7 @@ class Estimate:
     passes: int
     spp_per_pass: int
     pass_seconds: list = field(default_factory=list)   # timed passes (compile excluded)
-    invalid: int = 0                                    # NaN/Inf pixel values seen
+    invalid: int = 0            # NaN/Inf samples (counted in the kernel) + non-finite pixels
 
     @property
     def spp(self) -> int:
@@ -55,10 +55,15 @@ def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: 
 
     A warm-up render (not part of the estimate) compiles the kernel first so that pass
     times exclude compilation; each pass is timed with ``dr.sync_thread()``.
-    Non-finite pixel values are counted (``Estimate.invalid``), never averaged in silently.
+    ``Estimate.invalid`` counts NaN/Inf samples (every sampling integrator is counted,
+    Mitsuba's built-ins through :func:`mitsuba_plugins.validity.counted`) plus any
+    non-finite pixel values; neither is averaged in silently.
     """
     import drjit as dr
     import mitsuba as mi
+    from mitsuba_plugins.validity import counted, take_invalid_samples
+
+    integrator = counted(integrator if integrator is not None else scene.integrator())
 
     def one(s):
         img = mi.render(scene, integrator=integrator, spp=spp_per_pass, seed=s)
@@ -68,6 +73,7 @@ def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: 
 
     if warmup:
         one(seed + 0x7FFF0000)
+    take_invalid_samples(integrator)    # the warm-up's count is not part of the estimate
     images, times, invalid = [], [], 0
     iterator = range(passes)
     if progress:
@@ -79,7 +85,7 @@ def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: 
         times.append(time.perf_counter() - t0)
         arr = np.array(img, dtype=np.float64)
         bad = ~np.isfinite(arr)
-        invalid += int(bad.sum())
+        invalid += int(bad.sum()) + (take_invalid_samples(integrator) or 0)
         images.append(np.where(bad, 0.0, arr))
     return Estimate.from_passes(images, spp_per_pass, times, invalid)
 

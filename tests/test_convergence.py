@@ -1,14 +1,9 @@
 """Error falls as 1/spp, and MIS beats both single techniques on the Veach scene."""
-import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import load
+from helpers import load, render
 from mitsuba_plugins import stats
-
-
-def render(scene, integrator, spp, seed):
-    return np.array(mi.render(scene, integrator=mi.load_dict(integrator), spp=spp, seed=seed))
 
 
 @pytest.mark.parametrize("integrator, builtin", [({"type": "direct_mis"}, {"type": "direct"}),

@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import assert_mean_equals, load
+from helpers import assert_mean_equals, load, render
 
 CLOSED = [  # integrator parameters, expected (Le = 1, albedo 0.5)
     ({"type": "path_rr"}, 2.0),
@@ -23,7 +23,7 @@ CLOSED = [  # integrator parameters, expected (Le = 1, albedo 0.5)
 
 @pytest.mark.parametrize("integrator, expected", CLOSED, ids=[str(c[0]) for c in CLOSED])
 def test_closed_furnace(integrator, expected):
-    img = mi.render(load("furnace_closed", res=32), integrator=mi.load_dict(integrator), spp=64, seed=11)
+    img = render(load("furnace_closed", res=32), integrator, spp=64, seed=11)
     assert_mean_equals(img, expected, str(integrator))
 
 
@@ -38,7 +38,7 @@ OPEN = [
 
 @pytest.mark.parametrize("integrator", OPEN, ids=[str(c) for c in OPEN])
 def test_open_furnace(integrator):
-    img = mi.render(load("furnace_env", res=32), integrator=mi.load_dict(integrator), spp=64, seed=5)
+    img = render(load("furnace_env", res=32), integrator, spp=64, seed=5)
     assert_mean_equals(img, 0.8, str(integrator))
 
 
@@ -48,5 +48,5 @@ def test_hidden_environment_is_black_and_transparent():
                                      "film": {"type": "hdrfilm", "width": 4, "height": 4,
                                               "pixel_format": "rgba"}}})
     for name in ("path_rr", "direct_mis"):
-        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "hide_emitters": True}), spp=4))
+        img = render(scene, {"type": name, "hide_emitters": True}, spp=4)
         assert np.all(img == 0), name

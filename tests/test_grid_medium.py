@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SCENES, assert_same_expectation, estimate, load
+from helpers import SCENES, assert_same_expectation, estimate, load, render
 from mitsuba_plugins import gridio
 
 RES, SPP = 32, 16
@@ -33,9 +33,7 @@ def _scene(medium: dict, shape_to_world=None, res=RES, spp=SPP, max_depth=8):
 
 
 def _render(scene, seed=3):
-    img = np.array(mi.render(scene, seed=seed))
-    assert np.isfinite(img).all()
-    return img
+    return render(scene, seed=seed)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,194 @@
+"""What :func:`mitsuba_plugins.compare.compare` measured, written for people: the efficiency
+table (text, Markdown, CSV, JSON), error-against-time curves and a side-by-side image
+panel (PNG, matplotlib), and the images themselves (EXR + PNG)."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from mitsuba_plugins import stats
+from mitsuba_plugins.compare import FLOOR_SHARE, Report
+
+COLUMNS = (  # header, Row attribute, format
+    ("integrator", "integrator", "{}"),
+    ("reference", "reference", "{}"),
+    ("spp", "spp", "{}"),
+    ("time [s]", "seconds", "{:.3f}"),
+    ("rel. MSE", "rel_mse", "{:.3e}"),
+    ("efficiency", "efficiency", "{:.4g}"),
+    ("time / built-in", "time_ratio", "{:.3f}"),
+    ("rel. MSE / built-in", "rel_mse_ratio", "{:.3f}"),
+    ("eff. / built-in", "efficiency_ratio", "{:.3f}"),
+    ("NaN/Inf samples", "invalid", "{}"),
+)
+
+
+def _cell(value, fmt: str) -> str:
+    if isinstance(value, float) and math.isnan(value):
+        return "-"
+    return fmt.format(value)
+
+
+def table(report: Report, markdown: bool = False) -> str:
+    """The efficiency table, one row per integrator, aligned for a terminal or as Markdown."""
+    head = [c[0] for c in COLUMNS]
+    body = [[_cell(getattr(r, attr), fmt) for _, attr, fmt in COLUMNS] for r in report.rows]
+    if markdown:
+        line = lambda cells: "| " + " | ".join(cells) + " |"  # noqa: E731
+        return "\n".join([line(head), "|" + "|".join("---" for _ in head) + "|"] + [line(b) for b in body])
+    widths = [max(len(x) for x in col) for col in zip(head, *body)]
+    line = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    return "\n".join([line(head), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [line(b) for b in body])
+
+
+def legend(report: Report) -> str:
+    """What the columns mean, and where a reference's own noise limits them."""
+    how = (f"equal time: each integrator rendered passes of {report.spp_per_pass} spp until "
+           f"{report.time_budget:g} s were spent" if report.mode == "equal-time" else
+           f"equal spp: {report.rows[0].passes} passes of {report.spp_per_pass} spp each")
+    floors = report.floors()
+    lines = [f"{report.scene} ({how}; integrators take turns pass by pass, compilation excluded).",
+             f"rel. MSE = mean((x - ref)^2 / (ref^2 + {stats.REL_MSE_EPS})) against the reference "
+             "(the matching built-in at high spp) minus the reference's own rel. MSE; "
+             "efficiency = 1 / (rel. MSE x time); ratios are to the built-in row with the same "
+             "reference."]
+    for name, ref in report.references.items():
+        lines.append(f"reference {name}: {ref.spp} spp in {ref.passes} passes, own rel. MSE "
+                     f"{floors[name]:.2e}")
+    limited = [r.integrator for r in report.rows
+               if floors[r.reference] > FLOOR_SHARE * r.rel_mse_measured]
+    if limited:
+        lines.append(f"WARNING: for {', '.join(limited)} the reference's own rel. MSE is over "
+                     f"{100 * FLOOR_SHARE:.0f}% of the measured one; raise --ref-spp for a "
+                     "reliable figure.")
+    return "\n".join(lines)
+
+
+def write_tables(report: Report, out: Path) -> list[Path]:
+    """``table.md``, ``table.csv`` and ``results.json`` (rows with their curves) in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    md, csv_path, js = out / "table.md", out / "table.csv", out / "results.json"
+    md.write_text(table(report, markdown=True) + "\n\n" + legend(report) + "\n")
+    rows = [{k: v for k, v in r.to_dict().items() if not k.startswith("curve_")}
+            for r in report.rows]
+    with csv_path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    js.write_text(json.dumps(report.to_dict(), indent=1))
+    return [md, csv_path, js]
+
+
+def write_images(report: Report, out: Path) -> list[Path]:
+    """Each integrator's mean image as EXR and sRGB PNG."""
+    import mitsuba as mi
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for row in report.rows:
+        exr = out / f"{row.integrator.replace(':', '_').replace('=', '-')}.exr"
+        bitmap = mi.Bitmap(np.ascontiguousarray(row.image, dtype=np.float32))
+        bitmap.write(str(exr))
+        mi.util.write_bitmap(str(exr.with_suffix(".png")), bitmap)
+        paths.append(exr)
+    return paths
+
+
+def srgb(image: np.ndarray) -> np.ndarray:
+    """Linear RGB (or gray) -> displayable sRGB in [0, 1] (clamped, no exposure change)."""
+    x = np.clip(np.asarray(image, np.float64), 0.0, 1.0)
+    x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return x[..., 0] if x.ndim == 3 and x.shape[2] == 1 else x[..., :3]
+
+
+def relative_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Per-pixel relative squared error (channel mean), the summand of the rel. MSE."""
+    err = (np.asarray(image, np.float64) - reference) ** 2 / (reference ** 2 + stats.REL_MSE_EPS)
+    return err.mean(axis=-1)
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _colors(report: Report) -> dict:
+    plt = _pyplot()
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {r.integrator: cycle[i % len(cycle)] for i, r in enumerate(report.rows)}
+
+
+def plot_curves(report: Report, path: Path, title: str | None = None) -> Path:
+    """Relative MSE of the running estimate (reference noise subtracted) against seconds,
+    log-log; built-ins dashed, each reference's own rel. MSE dotted for scale."""
+    plt = _pyplot()
+    colors = _colors(report)
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    for r in report.rows:
+        ax.loglog(r.curve_seconds, np.maximum(r.curve_rel_mse, 1e-12), "--" if r.builtin else "-", marker=".",
+                  color=colors[r.integrator], label=r.integrator + (" (built-in)" if r.builtin else ""))
+    for name, floor in report.floors().items():
+        ax.axhline(floor, color="gray", linestyle=":", linewidth=1)
+        ax.annotate(f"reference {name}'s own", (ax.get_xlim()[0], floor), fontsize=7,
+                    color="gray", va="bottom")
+    ax.set_xlabel("render time [s] (compilation excluded)")
+    ax.set_ylabel("relative MSE")
+    ax.set_title(title or f"{Path(report.scene).stem}: error against time")
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_panel(report: Report, path: Path, title: str | None = None) -> Path:
+    """Top: each reference and each integrator's image (sRGB). Bottom: each reference's
+    relative standard error and each integrator's relative squared error, one log scale."""
+    plt = _pyplot()
+    from matplotlib.colors import LogNorm
+    refs = list(report.references.items())
+    n = len(refs) + len(report.rows)
+    fig, axes = plt.subplots(2, n, figsize=(2.3 * n + 0.8, 5.0), dpi=120, squeeze=False)
+    maps = [rel_se_map(ref) for _, ref in refs]
+    maps += [relative_error_map(r.image, report.references[r.reference].mean) for r in report.rows]
+    positive = np.concatenate([m[m > 0].ravel() for m in maps] + [np.array([1e-8])])
+    norm = LogNorm(vmin=max(np.percentile(positive, 1), 1e-8), vmax=max(np.percentile(positive, 99.5), 1e-7))
+    tops = [(f"reference\n{name} ({ref.spp} spp)", ref.mean) for name, ref in refs]
+    tops += [(f"{r.integrator}\n{r.spp} spp, {r.seconds:.2f} s", r.image) for r in report.rows]
+    bottoms = [f"ref. rel. variance\nmean {m.mean():.2e}" for m in maps[:len(refs)]]
+    bottoms += [f"rel. squared error\nrel. MSE {r.rel_mse:.2e}" for r in report.rows]
+    for k, ((text, image), err, below) in enumerate(zip(tops, maps, bottoms)):
+        axes[0, k].imshow(srgb(image), cmap="gray" if image.shape[-1] == 1 else None,
+                          vmin=0, vmax=1, interpolation="nearest")
+        axes[0, k].set_title(text, fontsize=8)
+        im = axes[1, k].imshow(np.maximum(err, norm.vmin), norm=norm, cmap="inferno",
+                               interpolation="nearest")
+        axes[1, k].set_title(below, fontsize=8)
+        for ax in axes[:, k]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.colorbar(im, ax=axes[1, :].tolist(), fraction=0.02, pad=0.01)
+    fig.suptitle(title or f"{Path(report.scene).stem} ({report.mode})", fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def rel_se_map(ref: stats.Estimate) -> np.ndarray:
+    """Per-pixel relative variance of a reference (channel mean): its share of a rel. MSE."""
+    return (ref.se ** 2 / (ref.mean ** 2 + stats.REL_MSE_EPS)).mean(axis=-1)
+
+
+def write_all(report: Report, out: Path) -> dict:
+    """Tables, images, ``curves.png`` and ``panel.png`` in ``out``; returns their paths."""
+    return {"tables": write_tables(report, out), "images": write_images(report, out),
+            "curves": plot_curves(report, out / "curves.png"),
+            "panel": plot_panel(report, out / "panel.png")}

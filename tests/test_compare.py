@@ -1,0 +1,102 @@
+"""The comparison CLI: both modes, its outputs, the reference cache and its key."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mitsuba_plugins import cli, report, stats
+from mitsuba_plugins.compare import compare, reference_floor, scene_digest
+
+SCENE = "scenes/cornell_box.xml"
+PAIR = [{"type": "direct_mis"}, {"type": "direct"}]
+
+
+@pytest.fixture(scope="module")
+def equal_time(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("refs")
+    return compare(SCENE, PAIR, time_budget=0.3, spp_per_pass=4, ref_spp=4096, res=16,
+                   cache_dir=cache, progress=False), cache
+
+
+def test_equal_time_spends_each_budget(equal_time):
+    result, _ = equal_time
+    assert result.mode == "equal-time"
+    for row in result.rows:
+        # passes stop as soon as the budget is spent: over it by less than one pass
+        last_pass = row.curve_seconds[-1] - (row.curve_seconds[-2] if row.passes > 1 else 0)
+        assert 0.3 <= row.seconds < 0.3 + last_pass + 1e-9
+        assert row.spp == 4 * row.passes == 4 * len(row.curve_rel_mse)
+        assert np.all(np.diff(row.curve_seconds) > 0)
+        assert row.invalid == 0
+    ours, builtin = result.rows
+    assert ours.builtin is False and builtin.builtin is True
+    assert math.isclose(ours.efficiency_ratio, ours.efficiency / builtin.efficiency)
+    assert math.isnan(builtin.efficiency_ratio)
+
+
+def test_rel_mse_subtracts_the_reference_noise(equal_time):
+    result, _ = equal_time
+    floor = reference_floor(result.references["direct"])
+    for row in result.rows:
+        measured = stats.rel_mse(row.image, result.references["direct"].mean)
+        assert math.isclose(row.rel_mse_measured, measured, rel_tol=1e-9)
+        assert math.isclose(row.rel_mse, measured - floor, rel_tol=1e-9)
+
+
+def test_equal_spp_and_cache(equal_time, tmp_path):
+    _, cache = equal_time
+    before = sorted(p.name for p in cache.iterdir())
+    result = compare(SCENE, PAIR, spp=8, passes=2, ref_spp=4096, res=16, cache_dir=cache,
+                     progress=False)
+    assert sorted(p.name for p in cache.iterdir()) == before  # the reference was reused
+    assert any(n.endswith("_se.exr") for n in before) and any(n.endswith(".npz") for n in before)
+    assert [r.spp for r in result.rows] == [8, 8] and [r.passes for r in result.rows] == [2, 2]
+
+
+def test_outputs(equal_time, tmp_path):
+    result, _ = equal_time
+    paths = report.write_all(result, tmp_path)
+    for p in (*paths["tables"], *paths["images"], paths["curves"], paths["panel"]):
+        assert p.is_file() and p.stat().st_size > 0, p
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["mode"] == "equal-time" and len(data["rows"]) == 2
+    assert data["rows"][0]["curve_rel_mse"] == result.rows[0].curve_rel_mse
+    csv_lines = (tmp_path / "table.csv").read_text().splitlines()
+    assert len(csv_lines) == 3 and csv_lines[0].startswith("integrator,reference")
+    md = (tmp_path / "table.md").read_text()
+    assert md.startswith("| integrator |") and "eff. / built-in" in md
+
+
+def test_scene_digest_follows_referenced_files(tmp_path):
+    grid = tmp_path / "g.npy"
+    np.save(grid, np.ones((2, 2, 2), np.float32))
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><medium type="grid_medium" id="m">'
+                   '<string name="filename" value="g.npy"/></medium></scene>')
+    first = scene_digest(str(xml))
+    np.save(grid, 2 * np.ones((2, 2, 2), np.float32))
+    assert scene_digest(str(xml)) != first
+
+
+def test_cli_equal_time(tmp_path, capsys):
+    rc = cli.main(["compare", SCENE, "-i", "path_rr:max_depth=3,path:max_depth=3", "--res", "16",
+                   "--time-budget", "0.2", "--spp-per-pass", "4", "--ref-spp", "64",
+                   "--cache", str(tmp_path / "refs"), "-o", str(tmp_path / "out"), "-q"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    assert "NaN/Inf samples: 0" in text and "path_rr:max_depth=3" in text
+    assert (tmp_path / "out" / "panel.png").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--time-budget", "0"], "--time-budget must be > 0"),
+    (["--spp", "2", "--passes", "4"], "--spp (2) must be >= --passes (4)"),
+    (["--spp-per-pass", "0", "--time-budget", "1"], "--spp-per-pass must be >= 1"),
+    (["--ref-spp", "8"], "--ref-spp must be >= 16"),
+    (["--time-budget", "nan"], "--time-budget must be > 0"),
+])
+def test_cli_rejects_bad_options(args, message, capsys, tmp_path):
+    assert cli.main(["compare", SCENE, "-i", "path_rr", "--res", "8", "--cache", str(tmp_path),
+                     *args]) == 2
+    assert message in capsys.readouterr().err
