@@ -68,7 +68,8 @@ def cmd_compare(args) -> int:
     result = compare(args.scene, integrators, spp=args.spp, passes=args.passes,
                      time_budget=args.time_budget, spp_per_pass=args.spp_per_pass,
                      ref_spp=args.ref_spp, res=args.res, cache_dir=Path(args.cache),
-                     seed=args.seed, progress=not args.quiet)
+                     seed=args.seed, progress=not args.quiet,
+                     reference=parse_integrator(args.reference) if args.reference else None)
     out = Path(args.output or Path("out") / "compare" / Path(args.scene).stem)
     rep.write_all(result, out)
     print()
@@ -119,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="samples per pass (default: spp / passes; 16 with --time-budget)")
     c.add_argument("--ref-spp", type=int,
                    help="reference spp (default max(1024, 16 x spp); 4096 with --time-budget)")
+    c.add_argument("--reference", metavar="INTEGRATOR",
+                   help="reference for all (default: each one's built-in counterpart), e.g. "
+                        "volpath_delta where volpath is biased")
     c.add_argument("--res", type=int, help="image width/height, for scenes with a $res parameter")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--cache", default=".cache/references", help="reference cache folder")

@@ -67,14 +67,22 @@ def label(integrator: dict) -> str:
     return integrator["type"] + (":" + extra if extra else "")
 
 
-def reference_for(integrator: dict) -> dict:
-    """The built-in integrator (with the parameters it shares) that serves as reference."""
+def _builtin_twin(integrator: dict) -> dict:
+    """The built-in row an integrator's ratios are taken against (itself for a built-in)."""
     name = integrator["type"]
     builtin = BUILTIN.get(name, name)
-    if builtin not in BUILTIN_PARAMS:
-        raise ValueError(f"no reference known for integrator '{name}'; known: "
-                         f"{', '.join(sorted(set(BUILTIN) | set(BUILTIN_PARAMS)))}")
-    return {"type": builtin, **{k: v for k, v in integrator.items() if k in BUILTIN_PARAMS[builtin]}}
+    return {"type": builtin,
+            **{k: v for k, v in integrator.items() if k in BUILTIN_PARAMS.get(builtin, ())}}
+
+
+def reference_for(integrator: dict) -> dict:
+    """The built-in integrator (with the parameters it shares) that serves as reference."""
+    twin = _builtin_twin(integrator)
+    if twin["type"] not in BUILTIN_PARAMS:
+        raise ValueError(f"no reference known for integrator '{integrator['type']}'; known: "
+                         f"{', '.join(sorted(set(BUILTIN) | set(BUILTIN_PARAMS)))}; or give "
+                         "--reference")
+    return twin
 
 
 def load_scene(path: str, res: int | None = None):
@@ -194,11 +202,11 @@ class Report:
 class _Run:
     """One integrator being measured: running sum, timed passes, curve."""
 
-    def __init__(self, spec: dict):
+    def __init__(self, spec: dict, reference: dict | None = None):
         import mitsuba as mi
         from mitsuba_plugins.validity import counted
         self.spec = spec
-        self.reference_spec = reference_for(spec)
+        self.reference_spec = reference or reference_for(spec)
         self.reference = label(self.reference_spec)
         self.ref: stats.Estimate | None = None          # set with the reference (use_reference)
         self.floor = 0.0
@@ -251,9 +259,13 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
             time_budget: float | None = None, spp_per_pass: int | None = None,
             ref_spp: int | None = None, res: int | None = None,
             cache_dir: Path = Path(".cache/references"), seed: int = 0,
-            progress: bool = True) -> Report:
+            progress: bool = True, reference: dict | None = None) -> Report:
     """Measure ``integrators`` on one scene, at equal spp (``spp`` in ``passes``) or, with
-    ``time_budget`` seconds, at equal time (passes of ``spp_per_pass``, default 16)."""
+    ``time_budget`` seconds, at equal time (passes of ``spp_per_pass``, default 16).
+
+    Each is measured against the built-in that estimates the same quantity
+    (:func:`reference_for`), or against ``reference`` for all (e.g. where the built-in
+    is biased); ratios are to the built-in row, whichever the reference."""
     if spp_per_pass is not None and spp_per_pass < 1:
         raise ValueError(f"--spp-per-pass must be >= 1; got {spp_per_pass}")
     if ref_spp is not None and ref_spp < REFERENCE_PASSES:
@@ -273,7 +285,7 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
         raise ValueError("no integrators given")
     scene = load_scene(scene_path, res)
     references = {}
-    runs = [_Run(spec) for spec in integrators]   # loads (validates) before any rendering
+    runs = [_Run(spec, reference) for spec in integrators]   # validated before any rendering
     for run in runs:
         if run.reference not in references:
             references[run.reference] = cached_reference(scene, scene_path, res, run.reference_spec,
@@ -304,8 +316,8 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
         bar.close()
     rows = [run.row(spp_per_pass) for run in runs]
     for row, spec in zip(rows, integrators):
-        ref_spec = reference_for(spec)
-        builtin = next((r for r, s in zip(rows, integrators) if s == ref_spec and r is not row), None)
+        twin = _builtin_twin(spec)
+        builtin = next((r for r, s in zip(rows, integrators) if s == twin and r is not row), None)
         if builtin is not None:
             row.time_ratio = row.seconds / builtin.seconds
             row.rel_mse_ratio = row.rel_mse / builtin.rel_mse if builtin.rel_mse > 0 else math.nan

@@ -53,7 +53,7 @@ def legend(report: Report) -> str:
     floors = report.floors()
     lines = [f"{report.scene} ({how}; integrators take turns pass by pass, compilation excluded).",
              f"rel. MSE = mean((x - ref)^2 / (ref^2 + {stats.REL_MSE_EPS})) against the reference "
-             "(the matching built-in at high spp) minus the reference's own rel. MSE; "
+             "(high spp, independent seeds) minus the reference's own rel. MSE; "
              "efficiency = 1 / (rel. MSE x time); ratios are to the built-in row with the same "
              "reference."]
     for name, ref in report.references.items():

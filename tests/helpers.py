@@ -72,10 +72,10 @@ def assert_mean_equals(images, expected: float, name: str, alpha: float = 1e-3):
 
 
 # -- media scenes and segments shared by the volumetric integrators' tests ----------------
-def camera(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None):
-    """A perspective sensor looking at the origin (optionally inside ``medium``)."""
+def camera(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None, target=(0.0, 0.0, 0.0)):
+    """A perspective sensor looking at ``target`` (optionally inside ``medium``)."""
     cam = {"type": "perspective", "fov": fov,
-           "to_world": mi.ScalarTransform4f().look_at(list(origin), [0, 0, 0], [0, 1, 0]),
+           "to_world": mi.ScalarTransform4f().look_at(list(origin), list(target), [0, 1, 0]),
            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
            "sampler": {"type": "independent", "sample_count": 16}}
     if medium is not None:

@@ -100,3 +100,14 @@ def test_cli_rejects_bad_options(args, message, capsys, tmp_path):
     assert cli.main(["compare", SCENE, "-i", "path_rr", "--res", "8", "--cache", str(tmp_path),
                      *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_reference_override(tmp_path):
+    """--reference measures every integrator against one integrator (e.g. volpath_delta
+    where volpath is biased); ratios stay to the built-in row."""
+    result = compare(SCENE, [{"type": "path_rr", "max_depth": 3}, {"type": "path", "max_depth": 3}],
+                     spp=8, passes=2, ref_spp=256, res=16, cache_dir=tmp_path, progress=False,
+                     reference={"type": "path_rr", "max_depth": 3})
+    assert [r.reference for r in result.rows] == ["path_rr:max_depth=3"] * 2
+    assert list(result.references) == ["path_rr:max_depth=3"]
+    assert not np.isnan(result.rows[0].efficiency_ratio)

@@ -1,0 +1,335 @@
+"""Regenerate docs/results.md: the scene gallery at equal time (tables, error-against-time
+curves, image panels) and the scale table (time and peak memory against image size, spp
+and grid resolution), then the summary block of the README.
+
+    python3 benchmarks/results.py              # about 20 minutes on 2 cores, from scratch
+    python3 benchmarks/results.py --quick      # smoke run: tiny budgets, nothing committed
+
+Gallery: each scene is measured with ``mitsuba_plugins.compare`` in equal-time mode (every
+integrator renders 16-spp passes, taking turns, until its budget is spent; compilation
+excluded) against a reference from the matching built-in, rendered here from scratch
+(``--keep-references`` reuses a previous run's). A reference's own noise is subtracted
+from every rel. MSE (its share is printed in each table's legend).
+
+Scale: every configuration runs in a fresh process (``--scale-worker``) so that its peak
+resident memory (``VmHWM``) is its own; times are the median of 3 renders after a
+warm-up render.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+FIGURES = DOCS / "results"
+README = ROOT / "README.md"
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+
+VOLUME = ("volpath_delta:max_depth=16", "volpath_raymarch:max_depth=16", "volpath:max_depth=16")
+#: the gallery: scene, integrators (ours first, then the built-ins), reference override
+GALLERY = [
+    ("cornell_box", ("direct_mis", "direct", "path_rr", "path"), None),
+    ("veach_mis", ("direct_mis", "direct", "path_rr:max_depth=2", "path:max_depth=2"), None),
+    ("smoke", VOLUME, None),
+    ("sparse", VOLUME, None),
+    # volpath is biased for chromatic extinction (tests/test_hard_cases.py): delta tracking
+    # with spectral MIS is the reference, rendered with other seeds
+    ("chromatic", VOLUME, "volpath_delta:max_depth=16"),
+]
+HEADLINE = "sparse"   # the README's plot
+RES = 128
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+# -- gallery ----------------------------------------------------------------------------------
+def reference_spp(scene, reference: dict, seconds: float) -> int:
+    """Reference spp for about ``seconds`` of rendering: a 4-spp pilot pass, timed after
+    a warm-up, scaled (a multiple of 16, at least 256)."""
+    import drjit as dr
+    import mitsuba as mi
+    integrator = mi.load_dict(reference)
+    for seed in (1, 2):                     # the first compiles
+        t0 = time.perf_counter()
+        img = mi.render(scene, integrator=integrator, spp=4, seed=seed)
+        dr.eval(img)
+        dr.sync_thread()
+        pilot = time.perf_counter() - t0
+    return max(256, int(seconds / pilot * 4) // 16 * 16)
+
+
+def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None) -> list:
+    from mitsuba_plugins import report
+    from mitsuba_plugins.compare import compare, load_scene, parse_integrator, reference_for
+    results = []
+    for name, specs, reference in GALLERY:
+        if only and name not in only:
+            continue
+        path = f"scenes/{name}.xml"          # relative: main() works in the repository root
+        integrators = [parse_integrator(s) for s in specs]
+        ref = parse_integrator(reference) if reference else None
+        refs = [ref] if ref else list({json.dumps(reference_for(i), sort_keys=True): reference_for(i)
+                                       for i in integrators}.values())
+        scene = load_scene(path, RES)
+        ref_spp = max(reference_spp(scene, r, ref_seconds) for r in refs)
+        t0 = time.perf_counter()
+        result = compare(path, integrators, time_budget=budget, spp_per_pass=16, ref_spp=ref_spp,
+                         res=RES, cache_dir=cache, progress=False, reference=ref)
+        print(f"{name}: {time.perf_counter() - t0:.0f} s (reference {ref_spp} spp)", flush=True)
+        report.plot_curves(result, FIGURES / f"{name}_curves.png")
+        report.plot_panel(result, FIGURES / f"{name}_panel.png")
+        (FIGURES / f"{name}.json").write_text(json.dumps(result.to_dict(), indent=1))
+        results.append((name, result))
+    return results
+
+
+# -- scale ------------------------------------------------------------------------------------
+def smooth_grid(n: int, path: Path):
+    """An n^3 density of three Gaussian puffs, built slab by slab (peak memory ~ the grid)."""
+    import numpy as np
+    x = (np.arange(n, dtype=np.float32) + 0.5) / n
+    puffs = [((0.35, 0.4, 0.5), 0.12), ((0.65, 0.55, 0.45), 0.1), ((0.5, 0.3, 0.3), 0.08)]
+    grid = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, n, n))
+    for k in range(n):                      # z slab k: axes (z, y, x)
+        zz = x[k]
+        slab = np.zeros((n, n), np.float32)
+        for (cx, cy, cz), r in puffs:
+            gy = np.exp(-((x - cy) ** 2) / (2 * r * r))
+            gx = np.exp(-((x - cx) ** 2) / (2 * r * r))
+            slab += np.exp(-((zz - cz) ** 2) / (2 * r * r)) * np.outer(gy, gx)
+        grid[k] = slab
+    grid.flush()
+    del grid
+
+
+def scale_worker(config: dict) -> dict:
+    """One configuration in this (fresh) process: time and peak memory."""
+    import mitsuba_plugins  # noqa: F401
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    mi.set_log_level(mi.LogLevel.Error)     # multi-pass renders warn on every call
+    integrator = {"type": config["integrator"], **config.get("params", {})}
+    load_seconds = 0.0
+    if "grid" in config:
+        t0 = time.perf_counter()
+        scene = mi.load_dict({
+            "type": "scene",
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}},
+            "light": {"type": "sphere", "center": [1.5, 2.0, 1.5], "radius": 0.3,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 30.0}}},
+            "box": {"type": "cube", "bsdf": {"type": "null"},
+                    "interior": {"type": "grid_medium", "filename": config["grid"], "scale": 20.0,
+                                 "albedo": 0.8, "to_world": mi.ScalarTransform4f().translate(
+                                     [-1, -1, -1]).scale(2)}},
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 4.5], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": config["res"], "height": config["res"]}}})
+        load_seconds = time.perf_counter() - t0
+    else:
+        scene = mi.load_file(str(ROOT / "scenes" / f"{config['scene']}.xml"), res=str(config["res"]))
+    integ = mi.load_dict(integrator)
+    times = []
+    for k in range(4):                      # the first compiles
+        t0 = time.perf_counter()
+        img = mi.render(scene, integrator=integ, spp=config["spp"], seed=k)
+        dr.eval(img)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    return {"render_s": statistics.median(times[1:]), "first_render_s": times[0],
+            "load_s": load_seconds,
+            "peak_rss_mb": peak_rss_mb()}
+
+
+def peak_rss_mb() -> float:
+    """This process's resident high-water mark (VmHWM; unlike ru_maxrss it is not
+    inherited from the parent across fork + exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def scale(quick: bool, tmp: Path) -> list:
+    configs = []
+    sizes = (128, 256) if quick else (128, 256, 512, 1024)
+    for res in sizes:
+        configs.append({"axis": "image size", "scene": "cornell_box", "res": res, "spp": 16,
+                        "integrator": "path_rr"})
+    for spp in ((4, 16) if quick else (4, 16, 64, 256)):
+        configs.append({"axis": "spp", "scene": "cornell_box", "res": 256, "spp": spp,
+                        "integrator": "path_rr"})
+    configs.append({"axis": "spp", "scene": "cornell_box", "res": 256, "spp": 256,
+                    "integrator": "path_rr", "params": {"samples_per_pass": 16}})
+    if not quick:
+        for params in ({}, {"samples_per_pass": 16}):
+            configs.append({"axis": "image size", "scene": "cornell_box", "res": 1024, "spp": 64,
+                            "integrator": "path_rr", "params": params})
+    for n in ((64, 128) if quick else (64, 128, 256, 512)):
+        grid = tmp / f"grid{n}.npy"
+        smooth_grid(n, grid)
+        configs.append({"axis": "grid resolution", "grid": str(grid), "n": n, "res": 128,
+                        "spp": 16, "integrator": "volpath_delta", "params": {"max_depth": 16}})
+    rows = []
+    for config in configs:
+        out = subprocess.run([sys.executable, __file__, "--scale-worker", json.dumps(config)],
+                             capture_output=True, text=True, check=True)
+        line = next(x for x in reversed(out.stdout.splitlines()) if x.startswith('{"render_s"'))
+        rows.append({**config, **json.loads(line)})
+        print(f"scale {config['axis']}: {rows[-1]}", flush=True)
+    return rows
+
+
+# -- writing ----------------------------------------------------------------------------------
+def fmt_ratio(x) -> str:
+    return "-" if x is None or x != x else f"{x:.2f}"
+
+
+def summary_table(results) -> str:
+    """One line per (scene, one of ours): its efficiency and equal-time rel. MSE against
+    the built-in, at equal time."""
+    lines = ["| scene | ours | built-in | efficiency / built-in | rel. MSE / built-in (equal time) | spp in the budget (ours / built-in) | NaN/Inf samples |",
+             "|---|---|---|---|---|---|---|"]
+    for name, result in results:
+        rows = {r.integrator: r for r in result.rows}
+        for r in result.rows:
+            if r.builtin:
+                continue
+            twin = next((b for b in result.rows if b.builtin and b.integrator.split(":")[0] ==
+                         _twin_name(r.integrator)), None)
+            lines.append(f"| {name} | `{r.integrator}` | `{twin.integrator if twin else '-'}` | "
+                         f"{fmt_ratio(r.efficiency_ratio)} | {fmt_ratio(r.rel_mse_ratio)} | "
+                         f"{r.spp} / {twin.spp if twin else '-'} | "
+                         f"{r.invalid + (twin.invalid if twin else 0)} |")
+        del rows
+    return "\n".join(lines)
+
+
+def _twin_name(label: str) -> str:
+    from mitsuba_plugins.compare import BUILTIN
+    return BUILTIN[label.split(":")[0]]
+
+
+def scale_table(rows) -> str:
+    lines = ["| axis | configuration | render time [s] | first render (compiles) [s] | grid load [s] | peak memory [MB] |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        what = (f"{r['n']}^3 grid, volpath_delta, {r['res']}^2 x {r['spp']} spp" if "n" in r else
+                f"{r['scene']} {r['res']}^2 x {r['spp']} spp, {r['integrator']}")
+        if r.get("params", {}).get("samples_per_pass"):
+            what += f", samples_per_pass={r['params']['samples_per_pass']}"
+        load = f"{r['load_s']:.2f}" if "n" in r else "-"
+        lines.append(f"| {r['axis']} | {what} | {r['render_s']:.3f} | {r['first_render_s']:.2f} | "
+                     f"{load} | {r['peak_rss_mb']:.0f} |")
+    return "\n".join(lines)
+
+
+def write_docs(results, scale_rows, meta) -> str:
+    from mitsuba_plugins import report
+    summary = summary_table(results)
+    parts = ["# Results", "",
+             f"Generated by `python3 benchmarks/results.py` on {meta['date']} "
+             f"({meta['cpu']}, {meta['cores']} cores, variant llvm_ad_rgb, Mitsuba "
+             f"{meta['mitsuba']}, Dr.Jit {meta['drjit']}); the whole run took "
+             f"{meta['minutes']:.1f} min from scratch.", "",
+             f"Every scene at {RES}x{RES}, equal time: each integrator had {meta['budget']:g} s "
+             "of rendering (16-spp passes, integrators taking turns, compilation excluded). "
+             "rel. MSE is measured against a high-spp reference with the reference's own "
+             "noise subtracted; efficiency = 1 / (rel. MSE x time). Ratios > 1 for efficiency "
+             "and < 1 for rel. MSE favour ours.", "",
+             "## Summary", "", summary, "",
+             f"![error against time, {HEADLINE}](results/{HEADLINE}_curves.png)", ""]
+    for name, result in results:
+        parts += [f"## {name}", "", report.table(result, markdown=True), "",
+                  "```", report.legend(result), "```", "",
+                  f"![{name} curves](results/{name}_curves.png)", "",
+                  f"![{name} panel](results/{name}_panel.png)", ""]
+    parts += ["## Scale", "",
+              "Each configuration in a fresh process; render time is the median of 3 renders "
+              "after a compiling one; peak memory is the process's resident high-water mark "
+              "(Mitsuba and Dr.Jit themselves included). `samples_per_pass` splits a render "
+              "into passes of that many spp, so the wavefront (and memory) stays that of one "
+              "pass.", "", scale_table(scale_rows), ""]
+    (DOCS / "results.md").write_text("\n".join(parts))
+    return summary
+
+
+def update_readme(summary: str, meta) -> None:
+    text = README.read_text()
+    block = (f"{BEGIN}\n_Equal time, {meta['budget']:g} s per integrator at {RES}x{RES}, "
+             f"{meta['cpu']} ({meta['cores']} cores), {meta['date']}; "
+             "from `python3 benchmarks/results.py` (full tables, image panels and the scale "
+             "table: [docs/results.md](docs/results.md))._\n\n"
+             f"{summary}\n\n![error against time, {HEADLINE}](docs/results/{HEADLINE}_curves.png)\n{END}")
+    if BEGIN in text:
+        head, rest = text.split(BEGIN, 1)
+        text = head + block + rest.split(END, 1)[1]
+    else:
+        text += "\n## Results\n\n" + block + "\n"
+    README.write_text(text)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--budget", type=float, default=10.0, help="seconds per integrator (10)")
+    p.add_argument("--ref-seconds", type=float, default=60.0,
+                   help="rendering time of each reference (60)")
+    p.add_argument("--keep-references", action="store_true",
+                   help="reuse references cached by a previous run")
+    p.add_argument("--quick", action="store_true", help="tiny budgets; writes to a temp folder")
+    p.add_argument("--only", nargs="*", help="gallery scenes to run")
+    p.add_argument("--scale-worker", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.scale_worker:
+        print(json.dumps(scale_worker(json.loads(args.scale_worker))))
+        return 0
+
+    import mitsuba_plugins  # noqa: F401
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    os.chdir(ROOT)
+    global DOCS, FIGURES, README
+    if args.quick:
+        args.budget, args.ref_seconds = 0.5, 2.0
+        DOCS = Path(tempfile.mkdtemp(prefix="results-quick-"))
+        FIGURES, README = DOCS / "results", DOCS / "README.md"
+        README.write_text("")
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    cache = ROOT / ".cache" / "results-references"
+    if not args.keep_references and cache.exists():
+        shutil.rmtree(cache)
+    start = time.perf_counter()
+    results = gallery(args.budget, args.ref_seconds, cache, args.only)
+    with tempfile.TemporaryDirectory() as tmp:
+        scale_rows = scale(args.quick, Path(tmp))
+    meta = {"date": datetime.date.today().isoformat(), "cpu": cpu_model(),
+            "cores": os.cpu_count(), "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "budget": args.budget, "minutes": (time.perf_counter() - start) / 60}
+    summary = write_docs(results, scale_rows, meta)
+    update_readme(summary, meta)
+    (FIGURES / "scale.json").write_text(json.dumps(scale_rows, indent=1))
+    print(f"wrote {DOCS / 'results.md'} and the README summary in {meta['minutes']:.1f} min")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
