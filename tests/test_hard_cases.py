@@ -19,11 +19,13 @@ grid, the 1e-4 and 1e4 grids. For the one dense voxel (1e4 in one voxel of an 8^
 a 0.02 step resolves the voxel's trilinear tent coarsely; there it must render finite
 and respect the furnace.
 """
+import re
+
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import (HARD_MEDIA, assert_same_expectation, assert_same_render, camera,
+from helpers import (HARD_MEDIA, SCENES, assert_same_expectation, assert_same_render, camera,
                      estimate, homogeneous, media_scene, render)
 from mitsuba_plugins import stats
 
@@ -45,22 +47,16 @@ T = mi.ScalarTransform4f
 
 # -- surfaces ---------------------------------------------------------------------------------
 def _plates_and_tiny_lights():
-    """Veach's plates at roughness 0.001, lit by spheres of radius 0.002 to 0.02."""
-    scene = {"type": "scene",
-             "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate(
-                 [1, 0, 0], -90).scale(4), "bsdf": {"type": "diffuse"}},
-             "sensor": camera(res=RES, origin=(0, 1.2, 4.5), fov=45)}
-    for k, (y, tilt) in enumerate([(-0.6, -60), (-0.1, -40), (0.4, -25)]):
-        scene[f"plate{k}"] = {
-            "type": "rectangle", "to_world": T().translate([0, y, -0.3 * k]).rotate(
-                [1, 0, 0], tilt).scale([1.5, 0.2, 1]),
-            "bsdf": {"type": "roughconductor", "alpha": 0.001, "material": "Al"}}
-    for k, radius in enumerate([0.002, 0.006, 0.02]):
-        scene[f"light{k}"] = {"type": "sphere", "center": [-1.0 + k, 1.6, -1.5],
-                              "radius": radius,
-                              "emitter": {"type": "area", "radiance": {
-                                  "type": "rgb", "value": 0.5 / radius ** 2}}}
-    return mi.load_dict(scene)
+    """Veach's MIS scene (scenes/veach_mis.xml) with every plate at roughness 0.001 and
+    every light 10x smaller (radius 0.003 to 0.09, radiance 100x: the same power)."""
+    xml = (SCENES / "veach_mis.xml").read_text()
+    xml = re.sub(r'name="alpha" value="[0-9.]+"', 'name="alpha" value="0.001"', xml)
+    xml = re.sub(r'name="radius" value="([0-9.]+)"',
+                 lambda m: f'name="radius" value="{float(m.group(1)) / 10:g}"', xml)
+    xml = re.sub(r'<emitter type="area"><rgb name="radiance" value="([0-9.]+)"/>',
+                 lambda m: f'<emitter type="area"><rgb name="radiance" value="{float(m.group(1)) * 100:g}"/>',
+                 xml)
+    return mi.load_string(xml, res=str(RES))
 
 
 def _delta_light_scene(kind):
