@@ -162,7 +162,7 @@ class Row:
     efficiency: float                    # 1 / (rel. MSE x seconds)
     invalid: int                         # NaN/Inf samples (counted in the kernel)
     builtin: bool                        # a Mitsuba built-in (not one of our plugins)
-    time_ratio: float = math.nan         # seconds / built-in's seconds (same reference)
+    time_ratio: float = math.nan         # seconds / its built-in counterpart's seconds
     rel_mse_ratio: float = math.nan      # rel. MSE / built-in's
     efficiency_ratio: float = math.nan   # efficiency / built-in's efficiency
     curve_seconds: list = field(default_factory=list)   # cumulative time after each pass
@@ -209,7 +209,7 @@ class _Run:
         self.reference_spec = reference or reference_for(spec)
         self.reference = label(self.reference_spec)
         self.ref: stats.Estimate | None = None          # set with the reference (use_reference)
-        self.floor = 0.0
+        self.floor, self.measured = 0.0, math.nan
         self.integrator = counted(mi.load_dict(spec))   # validates parameters first
         self.total, self.passes, self.seconds, self.invalid = None, 0, 0.0, 0
         self.curve_seconds, self.curve_rel_mse = [], []
