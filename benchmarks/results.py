@@ -216,7 +216,6 @@ def summary_table(results) -> str:
     lines = ["| scene | ours | built-in | efficiency / built-in | rel. MSE / built-in (equal time) | spp in the budget (ours / built-in) | NaN/Inf samples |",
              "|---|---|---|---|---|---|---|"]
     for name, result in results:
-        rows = {r.integrator: r for r in result.rows}
         for r in result.rows:
             if r.builtin:
                 continue
@@ -226,7 +225,6 @@ def summary_table(results) -> str:
                          f"{fmt_ratio(r.efficiency_ratio)} | {fmt_ratio(r.rel_mse_ratio)} | "
                          f"{r.spp} / {twin.spp if twin else '-'} | "
                          f"{r.invalid + (twin.invalid if twin else 0)} |")
-        del rows
     return "\n".join(lines)
 
 

@@ -37,23 +37,14 @@ def _write_outputs(image, exr: Path):
 
 
 def cmd_render(args) -> int:
-    import time
-
-    import drjit as dr
     import mitsuba as mi
-    import numpy as np
     from mitsuba_plugins.compare import load_scene, parse_integrator
-    from mitsuba_plugins.validity import counted, take_invalid_samples
+    from mitsuba_plugins.stats import timed_pass
+    from mitsuba_plugins.validity import counted
     scene = load_scene(args.scene, args.res)
     integrator = counted(mi.load_dict(parse_integrator(args.integrator)) if args.integrator
                          else scene.integrator())
-    t0 = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=args.spp or 0, seed=args.seed)
-    dr.eval(image)
-    dr.sync_thread()
-    seconds = time.perf_counter() - t0
-    array = np.array(image)
-    invalid = int((~np.isfinite(array)).sum()) + (take_invalid_samples(integrator) or 0)
+    seconds, array, invalid = timed_pass(scene, integrator, args.spp or 0, args.seed)
     out = Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
     _write_outputs(array, out)
     print(f"wrote {out} and {out.with_suffix('.png')} ({seconds:.2f} s including compilation; "

@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -214,31 +213,17 @@ class _Run:
         self.total, self.passes, self.seconds, self.invalid = None, 0, 0.0, 0
         self.curve_seconds, self.curve_rel_mse = [], []
 
-    def render(self, scene, spp: int, seed: int):
-        import drjit as dr
-        import mitsuba as mi
-        img = mi.render(scene, integrator=self.integrator, spp=spp, seed=seed)
-        dr.eval(img)
-        dr.sync_thread()
-        return img
-
     def use_reference(self, ref: stats.Estimate):
         self.ref, self.floor = ref, reference_floor(ref)
 
     def warm_up(self, scene, spp: int):
-        from mitsuba_plugins.validity import take_invalid_samples
-        self.render(scene, spp, seed=0x7FFF0000)
-        take_invalid_samples(self.integrator)
+        """Compile; neither the time nor the count is kept."""
+        stats.timed_pass(scene, self.integrator, spp, stats.WARMUP_SEED)
 
     def step(self, scene, spp: int, seed: int):
-        from mitsuba_plugins.validity import take_invalid_samples
-        t0 = time.perf_counter()
-        img = self.render(scene, spp, seed)
-        self.seconds += time.perf_counter() - t0
-        arr = np.array(img, dtype=np.float64)
-        bad = ~np.isfinite(arr)
-        self.invalid += int(bad.sum()) + (take_invalid_samples(self.integrator) or 0)
-        arr[bad] = 0.0
+        seconds, arr, invalid = stats.timed_pass(scene, self.integrator, spp, seed)
+        self.seconds += seconds
+        self.invalid += invalid
         self.total = arr if self.total is None else self.total + arr
         self.passes += 1
         self.curve_seconds.append(self.seconds)

@@ -16,6 +16,8 @@ import numpy as np
 
 #: Floor on a standard error (pixels whose passes agree exactly, e.g. background).
 SE_FLOOR = 1e-4
+#: Seed offset of warm-up renders (never one of an estimate's seeds)
+WARMUP_SEED = 0x7FFF0000
 #: Epsilon in the relative-MSE denominator, in the image's units (a dark pixel does not
 #: dominate the error).
 REL_MSE_EPS = 1e-2
@@ -49,6 +51,25 @@ class Estimate:
         return cls(mean, se, k, spp_per_pass, list(pass_seconds), invalid)
 
 
+def timed_pass(scene, integrator, spp: int, seed: int) -> tuple:
+    """One render of a counting integrator (see :func:`mitsuba_plugins.validity.counted`):
+    ``(seconds, image, invalid)``. The time is taken with ``dr.sync_thread()``; the image
+    is float64 with non-finite values zeroed; ``invalid`` counts NaN/Inf samples (in the
+    kernel) plus non-finite pixel values."""
+    import drjit as dr
+    import mitsuba as mi
+    from mitsuba_plugins.validity import take_invalid_samples
+    t0 = time.perf_counter()
+    img = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+    dr.eval(img)
+    dr.sync_thread()
+    seconds = time.perf_counter() - t0
+    arr = np.array(img, dtype=np.float64)
+    bad = ~np.isfinite(arr)
+    arr[bad] = 0.0
+    return seconds, arr, int(bad.sum()) + (take_invalid_samples(integrator) or 0)
+
+
 def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: int = 0,
                   warmup: bool = True, progress: str | None = None) -> Estimate:
     """Render ``passes`` independent images (seeds ``seed``, ``seed + 1``, ...).
@@ -59,34 +80,21 @@ def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: 
     Mitsuba's built-ins through :func:`mitsuba_plugins.validity.counted`) plus any
     non-finite pixel values; neither is averaged in silently.
     """
-    import drjit as dr
-    import mitsuba as mi
-    from mitsuba_plugins.validity import counted, take_invalid_samples
+    from mitsuba_plugins.validity import counted
 
     integrator = counted(integrator if integrator is not None else scene.integrator())
-
-    def one(s):
-        img = mi.render(scene, integrator=integrator, spp=spp_per_pass, seed=s)
-        dr.eval(img)
-        dr.sync_thread()
-        return img
-
-    if warmup:
-        one(seed + 0x7FFF0000)
-    take_invalid_samples(integrator)    # the warm-up's count is not part of the estimate
+    if warmup:                          # compiles; its time and count are not kept
+        timed_pass(scene, integrator, spp_per_pass, WARMUP_SEED + seed)
     images, times, invalid = [], [], 0
     iterator = range(passes)
     if progress:
         from tqdm import tqdm
         iterator = tqdm(iterator, desc=progress, leave=False, unit="pass")
     for k in iterator:
-        t0 = time.perf_counter()
-        img = one(seed + k)
-        times.append(time.perf_counter() - t0)
-        arr = np.array(img, dtype=np.float64)
-        bad = ~np.isfinite(arr)
-        invalid += int(bad.sum()) + (take_invalid_samples(integrator) or 0)
-        images.append(np.where(bad, 0.0, arr))
+        seconds, image, bad = timed_pass(scene, integrator, spp_per_pass, seed + k)
+        times.append(seconds)
+        images.append(image)
+        invalid += bad
     return Estimate.from_passes(images, spp_per_pass, times, invalid)
 
 

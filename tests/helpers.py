@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_plugins import stats
-from mitsuba_plugins.validity import counted, take_invalid_samples
+from mitsuba_plugins.validity import counted
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 SMOKE = str(SCENES / "data" / "smoke.vol")
@@ -37,10 +37,8 @@ def render(scene, integrator=None, spp: int = 0, seed: int = 0) -> np.ndarray:
     if isinstance(integrator, dict):
         integrator = mi.load_dict(integrator)
     integrator = counted(integrator if integrator is not None else scene.integrator())
-    img = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
-    invalid = take_invalid_samples(integrator)
-    assert invalid == 0, f"{integrator}: {invalid} NaN/Inf samples"
-    assert np.isfinite(img).all()
+    _, img, invalid = stats.timed_pass(scene, integrator, spp, seed)
+    assert invalid == 0, f"{integrator}: {invalid} NaN/Inf samples or non-finite pixels"
     return img
 
 

@@ -190,7 +190,7 @@ VOLUMETRIC = {"volpath_delta": {"type": "volpath_delta"},
 
 
 @pytest.fixture(scope="module")
-def volpath_reference():
+def media_reference():
     """The reference per media case (volpath unless REFERENCES says otherwise; 16 passes),
     made once per module."""
     cache = {}
@@ -206,7 +206,7 @@ def volpath_reference():
 
 @pytest.mark.parametrize("case", list(MEDIA_CASES))
 @pytest.mark.parametrize("ours", list(VOLUMETRIC))
-def test_media_case(ours, case, tmp_path, volpath_reference):
+def test_media_case(ours, case, tmp_path, media_reference):
     build, march_agrees = MEDIA_CASES[case]
     scene = build(tmp_path)
     a = estimate(scene, {**VOLUMETRIC[ours], "max_depth": DEPTH}, passes=8,
@@ -214,7 +214,7 @@ def test_media_case(ours, case, tmp_path, volpath_reference):
     assert (a.mean >= 0).all()
     if ours == "volpath_raymarch" and not march_agrees:
         return  # finite (asserted by estimate); the furnace test below bounds its energy
-    assert_same_expectation(a, volpath_reference(case, scene), f"{ours}-{case}")
+    assert_same_expectation(a, media_reference(case, scene), f"{ours}-{case}")
 
 
 # -- chromatic extinction ratio 1000, where volpath is wrong ----------------------------------
