@@ -23,14 +23,24 @@ def balance_heuristic(a, b):
 
 def power_heuristic(a, b, exponent: float = 2.0):
     """w = a^e / (a^e + b^e). ``exponent == 2`` uses the same operations as Mitsuba's
-    C++ ``mis_weight`` so that ports stay bit-identical."""
+    C++ ``mis_weight`` so that ports stay bit-identical.
+
+    Any other exponent is computed from the ratio of the smaller density to the larger,
+    ``r = min / max`` in [0, 1]: ``w = 1 / (1 + r^e)`` for the larger technique and
+    ``r^e / (1 + r^e)`` for the smaller. ``r^e`` cannot overflow and underflows to 0
+    harmlessly, so the two weights of a sample still sum to 1 for exponents up to 1e6
+    and beyond; raising the densities themselves overflows float32 already at e ~ 30
+    (``a^e / (a^e + b^e)`` = inf/inf, the sample lost: 31% of a Cornell box at e = 100).
+    """
     if exponent == 2.0:
         a2, b2 = dr.square(a), dr.square(b)
-    elif exponent == 1.0:
+        return _finite_or_zero(a2 / (a2 + b2))
+    if exponent == 1.0:
         return balance_heuristic(a, b)
-    else:
-        a2, b2 = dr.power(a, exponent), dr.power(b, exponent)
-    return _finite_or_zero(a2 / (a2 + b2))
+    own_larger = a >= b
+    r = dr.select(own_larger, b / a, a / b)         # in [0, 1]; NaN when both are 0 or inf
+    re = dr.power(r, exponent)
+    return _finite_or_zero(dr.select(own_larger, 1.0, re) / (1.0 + re))
 
 
 def single_technique(a, b, preferred: bool):
