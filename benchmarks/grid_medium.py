@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
+from mitsuba_plugins import output
 import mitsuba as mi
 import numpy as np
 
@@ -120,7 +121,7 @@ def bench_build(runs=5):
 
 def write_results(result, out_dir: Path):
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "grid_medium.json").write_text(json.dumps(result, indent=2))
+    output.write_json(out_dir / "grid_medium.json", result, indent=2)
     t, m, b = result["time"], result["memory"], result["build"]
     lines = [
         "# grid_medium benchmark",
@@ -158,7 +159,7 @@ def write_results(result, out_dir: Path):
         "(target < 1 s)",
         "",
     ]
-    (out_dir / "grid_medium.md").write_text("\n".join(lines))
+    output.write_text(out_dir / "grid_medium.md", "\n".join(lines))
     print("\n".join(lines))
 
 

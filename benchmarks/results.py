@@ -82,6 +82,7 @@ def reference_spp(scene, reference: dict, seconds: float) -> int:
 
 
 def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None) -> list:
+    from mitsuba_plugins import output
     from mitsuba_plugins import report
     from mitsuba_plugins.compare import compare, load_scene, parse_integrator, reference_for
     results = []
@@ -101,7 +102,7 @@ def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None) -
         print(f"{name}: {time.perf_counter() - t0:.0f} s (reference {ref_spp} spp)", flush=True)
         report.plot_curves(result, FIGURES / f"{name}_curves.png")
         report.plot_panel(result, FIGURES / f"{name}_panel.png")
-        (FIGURES / f"{name}.json").write_text(json.dumps(result.to_dict(), indent=1))
+        output.write_json(FIGURES / f"{name}.json", result.to_dict(), indent=1)
         results.append((name, result))
     return results
 
@@ -248,6 +249,7 @@ def scale_table(rows) -> str:
 
 
 def write_docs(results, scale_rows, meta) -> str:
+    from mitsuba_plugins import output
     from mitsuba_plugins import report
     summary = summary_table(results)
     parts = ["# Results", "",
@@ -275,11 +277,12 @@ def write_docs(results, scale_rows, meta) -> str:
               "high-water mark (Mitsuba and Dr.Jit themselves included); grid "
               "load is scene loading with the grid file and its majorant grid.", "",
               scale_table(scale_rows), "", SCALE_NOTE, ""]
-    (DOCS / "results.md").write_text("\n".join(parts))
+    output.write_text(DOCS / "results.md", "\n".join(parts))
     return summary
 
 
 def update_readme(summary: str, meta) -> None:
+    from mitsuba_plugins import output
     text = README.read_text()
     block = (f"{BEGIN}\n_Equal time, {meta['budget']:g} s per integrator at {RES}x{RES}, "
              f"{meta['cpu']} ({meta['cores']} cores), {meta['date']}; "
@@ -294,10 +297,11 @@ def update_readme(summary: str, meta) -> None:
         text = head + block + rest.split(END, 1)[1]
     else:
         text += "\n## Results\n\n" + block + "\n"
-    README.write_text(text)
+    output.write_text(README, text)
 
 
 def main() -> int:
+    from mitsuba_plugins import output
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--budget", type=float, default=10.0, help="seconds per integrator (10)")
     p.add_argument("--ref-seconds", type=float, default=60.0,
@@ -336,7 +340,7 @@ def main() -> int:
             "budget": args.budget, "minutes": (time.perf_counter() - start) / 60}
     summary = write_docs(results, scale_rows, meta)
     update_readme(summary, meta)
-    (FIGURES / "scale.json").write_text(json.dumps(scale_rows, indent=1))
+    output.write_json(FIGURES / "scale.json", scale_rows, indent=1)
     print(f"wrote {DOCS / 'results.md'} and the README summary in {meta['minutes']:.1f} min")
     return 0
 

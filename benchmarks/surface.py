@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import statistics
@@ -24,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import stats
+from mitsuba_plugins import output, stats
 from mitsuba_plugins.compare import cached_reference, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -100,7 +99,7 @@ def main():
             "res": args.res, "runs": args.runs, "ref_spp": args.ref_spp}
     out_dir = ROOT / "benchmarks" / "results"
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "surface.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
+    output.write_json(out_dir / "surface.json", {"meta": meta, "results": results}, indent=1)
     lines = [
         "# Surface integrators vs Mitsuba built-ins",
         "",
@@ -118,7 +117,7 @@ def main():
         lines.append(f"| {r['scene']} | {r['ours_name']} / {r['builtin_name']} | {r['ours']['median_s']:.3f} | "
                      f"{r['builtin']['median_s']:.3f} | {r['time_ratio']:.3f} | {r['ours']['rel_mse']:.3e} | "
                      f"{r['builtin']['rel_mse']:.3e} | {r['efficiency_ratio']:.3f} |")
-    (out_dir / "surface.md").write_text("\n".join(lines) + "\n")
+    output.write_text(out_dir / "surface.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import statistics
 import tempfile
 import time
@@ -38,7 +37,7 @@ import numpy as np
 from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 
 mi.set_variant("llvm_ad_rgb")
-from mitsuba_plugins import stats, tracking  # noqa: E402  (needs a variant)
+from mitsuba_plugins import output, stats, tracking  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {"homogeneous_chromatic": 1.3, "sparse_smoke": 3.0, "dense_smooth": 1.0}
@@ -320,8 +319,8 @@ def main() -> None:
                                              [float(r) for r in args.ratios.split(",")])
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1))
-    out.with_suffix(".md").write_text(markdown(result))
+    output.write_json(out.with_suffix(".json"), result, indent=1)
+    output.write_text(out.with_suffix(".md"), markdown(result))
     print(markdown(result))
 
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import time
 from pathlib import Path
 
@@ -40,7 +39,7 @@ import numpy as np
 from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 
 mi.set_variant("llvm_ad_rgb")
-from mitsuba_plugins import stats  # noqa: E402  (needs a variant)
+from mitsuba_plugins import output, stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -331,8 +330,8 @@ def main():
               "bias": bias, "curves": curve_data}
     result["plots"] = plot(curve_data, bias, args.out)
     result["total_seconds"] = time.perf_counter() - t0
-    (args.out / "volpath_raymarch.json").write_text(json.dumps(result, indent=1))
-    (args.out / "volpath_raymarch.md").write_text(markdown(result))
+    output.write_json(args.out / "volpath_raymarch.json", result, indent=1)
+    output.write_text(args.out / "volpath_raymarch.md", markdown(result))
     print(markdown(result))
     print(f"total {result['total_seconds']:.0f} s")
 

@@ -1,16 +1,32 @@
-"""Command line: ``mitsuba-plugins render`` and ``mitsuba-plugins compare``.
+"""Command line: ``mitsuba-plugins render``, ``compare`` and ``grid``.
 
 Errors reach the user as one line: Mitsuba wraps a plugin's exception in a parser error
 whose text embeds the Python traceback, so the last ``...Error: message`` line is shown.
+
+Every option is checked, and every output path is checked (:mod:`mitsuba_plugins.output`),
+before any work starts; outputs are written to a temporary name and renamed when complete.
+The command runs in a worker thread while the main thread waits for it, so Ctrl-C is
+answered within a fraction of a second even while a render kernel runs (a kernel cannot
+be stopped from Python): the process then removes its unfinished temporary files, prints
+``mitsuba-plugins: interrupted`` and exits with status 130, wherever it was.
 """
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import re
 import sys
+import threading
 from pathlib import Path
 
 import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
+from mitsuba_plugins import output
+
+#: exit status of an interrupted command (128 + SIGINT), as shells report it
+EXIT_INTERRUPTED = 130
+#: largest seed: Mitsuba's samplers take an unsigned 32-bit seed
+MAX_SEED = 2 ** 32 - 1
 
 _ERROR_LINE = re.compile(r"^\s*(?:[\w.]+\.)?(\w*(?:Error|Exception)): (.+)$")
 
@@ -27,13 +43,8 @@ def user_message(error: BaseException) -> str:
     return text.splitlines()[-1].strip() if text.strip() else type(error).__name__
 
 
-def _write_outputs(image, exr: Path):
-    import mitsuba as mi
-    import numpy as np
-    exr.parent.mkdir(parents=True, exist_ok=True)
-    bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32))
-    bitmap.write(str(exr))
-    mi.util.write_bitmap(str(exr.with_suffix(".png")), bitmap)  # sRGB tone map, clamped
+def render_target(args) -> Path:
+    return Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
 
 
 def cmd_render(args) -> int:
@@ -41,15 +52,21 @@ def cmd_render(args) -> int:
     from mitsuba_plugins.compare import load_scene, parse_integrator
     from mitsuba_plugins.stats import timed_pass
     from mitsuba_plugins.validity import counted
+    out = render_target(args)
     scene = load_scene(args.scene, args.res)
     integrator = counted(mi.load_dict(parse_integrator(args.integrator)) if args.integrator
                          else scene.integrator())
+    print(f"rendering {args.scene} ...", file=sys.stderr, flush=True)
     seconds, array, invalid = timed_pass(scene, integrator, args.spp or 0, args.seed)
-    out = Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
-    _write_outputs(array, out)
+    output.write_exr(out, array)
+    output.write_png(out.with_suffix(".png"), array)  # sRGB tone map, clamped
     print(f"wrote {out} and {out.with_suffix('.png')} ({seconds:.2f} s including compilation; "
           f"{invalid} NaN/Inf samples, zeroed)")
     return 1 if invalid else 0
+
+
+def compare_folder(args) -> Path:
+    return Path(args.output or Path("out") / "compare" / Path(args.scene).stem)
 
 
 def cmd_compare(args) -> int:
@@ -61,7 +78,7 @@ def cmd_compare(args) -> int:
                      ref_spp=args.ref_spp, res=args.res, cache_dir=Path(args.cache),
                      seed=args.seed, progress=not args.quiet,
                      reference=parse_integrator(args.reference) if args.reference else None)
-    out = Path(args.output or Path("out") / "compare" / Path(args.scene).stem)
+    out = compare_folder(args)
     rep.write_all(result, out)
     print()
     print(rep.table(result))
@@ -74,12 +91,20 @@ def cmd_compare(args) -> int:
 
 
 def cmd_grid_info(args) -> int:
-    import json
     from mitsuba_plugins import gridio
+    invalid = 0
     for path in args.files:
         info = gridio.grid_info(path, args.majorant_resolution)
-        print(json.dumps(info, indent=2) if args.json else gridio.format_info(info))
-    return 0
+        if args.json:
+            info["null_means"] = output.JSON_NULL_MEANS
+            print(output.dumps_json(info, indent=2))
+        else:
+            print(gridio.format_info(info))
+        invalid += bool(info["nonfinite"] or info["negative"])
+    if invalid:
+        print(f"mitsuba-plugins: error: {invalid} of {len(args.files)} grid file(s) invalid "
+              "(see INVALID above); grid_medium refuses them", file=sys.stderr)
+    return 1 if invalid else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,26 +152,96 @@ def build_parser() -> argparse.ArgumentParser:
                                       "emptiness")
     gi.add_argument("files", nargs="+", help=".vol or .npy grid files")
     gi.add_argument("--majorant-resolution", type=int, default=16,
-                    help="majorant cells per axis (default 16)")
+                    help="majorant cells per axis, in [1, 1024] (default 16)")
     gi.add_argument("--json", action="store_true", help="print JSON")
     gi.set_defaults(func=cmd_grid_info)
     return p
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+class OptionError(ValueError):
+    """A command-line option out of its range."""
+
+
+def _int_range(args, name: str, lo: int, hi: int | None = None):
+    value = getattr(args, name.lstrip("-").replace("-", "_"), None)
+    if value is not None and (value < lo or (hi is not None and value > hi)):
+        allowed = f"an integer in [{lo}, {hi}]" if hi is not None else f"an integer >= {lo}"
+        raise OptionError(f"{name} = {value} is invalid; allowed: {allowed}")
+
+
+def check_options(args) -> None:
+    """Every option in range, and every output writable, before any work starts."""
+    if args.command in ("render", "compare"):
+        _int_range(args, "--res", 1)
+        _int_range(args, "--spp", 1)
+        _int_range(args, "--seed", 0, MAX_SEED)
+    if args.command == "render":
+        out = render_target(args)
+        output.check_targets([out], extensions=(".exr",), option="-o/--output")
+        output.check_targets([out.with_suffix(".png")], option="-o/--output (PNG preview)")
+    elif args.command == "compare":
+        _int_range(args, "--passes", 1)
+        _int_range(args, "--spp-per-pass", 1)
+        _int_range(args, "--ref-spp", 1)
+        budget = args.time_budget
+        if budget is not None and not (math.isfinite(budget) and budget > 0):
+            raise OptionError(f"--time-budget = {budget} is invalid; allowed: a finite number "
+                              "of seconds > 0")
+        from mitsuba_plugins import report as rep
+        from mitsuba_plugins.compare import label, parse_integrator
+        labels = [label(parse_integrator(s)) for s in args.integrators.split(",") if s.strip()]
+        folder = compare_folder(args)
+        output.check_folder_target(folder, option="-o/--output")
+        output.check_targets([folder / name for name in rep.output_names(labels)],
+                             option="-o/--output")
+        output.check_folder_target(args.cache, option="--cache")
+    elif args.command == "grid":
+        _int_range(args, "--majorant-resolution", 1, 1024)
+
+
+def _run(args, result: dict) -> None:
+    """The command, in the worker thread; its exit status or error goes to ``result``."""
     try:
         import mitsuba as mi
         mi.set_variant(args.variant)
-        if args.command == "render" and args.spp is not None and args.spp <= 0:
-            raise ValueError(f"--spp must be >= 1; got {args.spp}")
-        return args.func(args)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except Exception as error:  # one clear line, not a Dr.Jit traceback
+        result["rc"] = args.func(args)
+    except BaseException as error:  # handed to the main thread
+        result["error"] = error
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        check_options(args)
+    except (OptionError, output.OutputError, ValueError) as error:
         print(f"mitsuba-plugins: error: {user_message(error)}", file=sys.stderr)
         return 2
+    result = {}
+    worker = threading.Thread(target=_run, args=(args, result), name="mitsuba-plugins",
+                              daemon=True)
+    try:
+        worker.start()
+        while worker.is_alive():
+            worker.join(0.05)
+    except KeyboardInterrupt:
+        interrupted()
+    error = result.get("error")
+    if error is None:
+        return result.get("rc", 0)
+    if isinstance(error, KeyboardInterrupt):
+        interrupted()
+    # one clear line, not a Dr.Jit traceback
+    print(f"mitsuba-plugins: error: {user_message(error)}", file=sys.stderr)
+    return 2
+
+
+def interrupted():
+    """Ctrl-C: no half-written file stays behind; the same message and status wherever
+    it came. The process exits at once, since a running kernel cannot be stopped."""
+    output.remove_pending()
+    print("mitsuba-plugins: interrupted", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":

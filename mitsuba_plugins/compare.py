@@ -11,15 +11,17 @@ the error-against-time curve.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
+import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins import stats
+from mitsuba_plugins import output, stats
 
 #: Our plugin -> the Mitsuba built-in that estimates the same quantity, and the
 #: parameters of ours that the built-in understands (passed on to the reference).
@@ -110,31 +112,87 @@ def scene_digest(scene_path: str) -> str:
     return digest.hexdigest()
 
 
+#: what a reference-cache entry holds (``.npz``); ``checksum`` covers all the others
+CACHE_FIELDS = ("mean", "se", "passes", "spp_per_pass", "meta")
+CACHE_FORMAT = 2
+
+
+def _cache_checksum(fields: dict) -> str:
+    digest = hashlib.sha256()
+    for name in CACHE_FIELDS:
+        value = np.asarray(fields[name])
+        digest.update(name.encode() + str(value.dtype).encode() + str(value.shape).encode())
+        digest.update(np.ascontiguousarray(value).tobytes())
+    return digest.hexdigest()
+
+
+def _read_cache_entry(path: Path, meta: str, size: tuple):
+    """``(estimate, None)`` from the entry at ``path``, or ``(None, reason)`` when it is
+    unreadable, misses fields, does not match its checksum, was made with other
+    settings, is not an image of ``size = (height, width)`` or holds non-finite values."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in CACHE_FIELDS + ("checksum",) if k not in data.files]
+            if missing:
+                return None, f"missing field(s) {', '.join(missing)}"
+            fields = {k: data[k] for k in CACHE_FIELDS}
+            checksum = str(data["checksum"])
+    except Exception as error:  # zip, zlib, numpy format errors: all mean 'damaged'
+        return None, f"unreadable ({type(error).__name__}: {error})"
+    if _cache_checksum(fields) != checksum:
+        return None, "content does not match its checksum"
+    if str(fields["meta"]) != meta:
+        return None, "made with other settings"
+    mean, se = fields["mean"], fields["se"]
+    if mean.ndim != 3 or mean.shape[:2] != tuple(size) or se.shape != mean.shape:
+        return None, f"image shape {mean.shape}, expected {tuple(size)} x channels"
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(se)) and np.all(se >= 0)):
+        return None, "non-finite values"
+    return stats.Estimate(mean, se, int(fields["passes"]), int(fields["spp_per_pass"])), None
+
+
+def _write_cache_entry(path: Path, est: stats.Estimate, meta: str) -> None:
+    fields = {"mean": np.asarray(est.mean, np.float64), "se": np.asarray(est.se, np.float64),
+              "passes": np.int64(est.passes), "spp_per_pass": np.int64(est.spp_per_pass),
+              "meta": np.str_(meta)}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, checksum=np.str_(_cache_checksum(fields)), **fields)
+    with output.atomic_path(path) as tmp:
+        Path(tmp).write_bytes(buffer.getvalue())
+    for suffix, image in (("", est.mean), ("_se", est.se)):
+        output.write_exr(path.with_name(path.stem + suffix + ".exr"), image)
+
+
 def cached_reference(scene, scene_path: str, res, reference: dict, spp: int, cache_dir: Path,
                      seed: int = 0x5EED0000, progress: bool = True) -> stats.Estimate:
     """High-spp reference (mean of 16 passes and its per-pixel standard error), cached on
     disk keyed by scene content (:func:`scene_digest`), resolution, integrator, spp and
-    variant. Next to the ``.npz`` the mean and standard-error images are written as EXR."""
+    variant. Next to the ``.npz`` the mean and standard-error images are written as EXR.
+
+    Each entry stores these settings and a SHA-256 of its content; an entry that fails
+    any check on reading (:func:`_read_cache_entry`) is rebuilt, with a line on stderr
+    naming the file and what was wrong with it."""
     import mitsuba as mi
-    key = hashlib.sha256(json.dumps({
-        "scene": scene_digest(scene_path), "res": res,
+    meta = json.dumps({
+        "format": CACHE_FORMAT, "scene": scene_digest(scene_path), "res": res,
         "integrator": reference, "spp": spp, "variant": mi.variant(), "seed": seed,
-    }, sort_keys=True).encode()).hexdigest()[:20]
+    }, sort_keys=True)
+    key = hashlib.sha256(meta.encode()).hexdigest()[:20]
     path = Path(cache_dir) / f"{Path(scene_path).stem}-{reference['type']}-{spp}spp-{key}.npz"
-    if path.exists():
-        data = np.load(path)
-        return stats.Estimate(data["mean"], data["se"], int(data["passes"]), int(data["spp_per_pass"]))
     per_pass = max(1, spp // REFERENCE_PASSES)
+    if path.exists():
+        width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+        est, reason = _read_cache_entry(path, meta, (height, width))
+        if est is not None:
+            return est
+        print(f"mitsuba-plugins: reference cache entry '{path}' is damaged ({reason}); "
+              "rebuilding it", file=sys.stderr)
     est = stats.render_passes(scene, REFERENCE_PASSES, per_pass, integrator=mi.load_dict(reference),
                               seed=seed, warmup=False,
                               progress=f"reference {label(reference)} {spp} spp" if progress else None)
     if est.invalid:
         raise RuntimeError(f"reference {label(reference)} produced {est.invalid} NaN/Inf samples")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, mean=est.mean, se=est.se, passes=est.passes, spp_per_pass=est.spp_per_pass)
-    for suffix, image in (("", est.mean), ("_se", est.se)):
-        mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32)).write(
-            str(path.with_name(path.stem + suffix + ".exr")))
+    _write_cache_entry(path, est, meta)
     return est
 
 
@@ -257,8 +315,9 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
         raise ValueError(f"--ref-spp must be >= {REFERENCE_PASSES} (one per reference pass); "
                          f"got {ref_spp}")
     if time_budget is not None:
-        if not time_budget > 0:
-            raise ValueError(f"--time-budget must be > 0 seconds; got {time_budget}")
+        if not (math.isfinite(time_budget) and time_budget > 0):
+            raise ValueError(f"--time-budget = {time_budget} is invalid; allowed: a finite "
+                             "number of seconds > 0")
         spp_per_pass = spp_per_pass or 16
         ref_spp = ref_spp or 4096
     else:
@@ -292,7 +351,7 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
             break
         for run in todo:                  # take turns, pass by pass
             before = run.seconds
-            run.step(scene, spp_per_pass, seed + k)
+            run.step(scene, spp_per_pass, (seed + k) % 2 ** 32)  # Mitsuba seeds are uint32
             if bar is not None:
                 bar.update(min(run.seconds, time_budget) - min(before, time_budget)
                            if time_budget else 1)

@@ -26,7 +26,9 @@ device memory without holding a second full copy.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
+import stat
 import struct
 
 import numpy as np
@@ -41,6 +43,8 @@ GRID_CHANNELS = (1, 3)
 MIN_RESOLUTION = 2
 #: bytes per slab in :func:`iter_slabs` (whole z-slices, at least one)
 SLAB_BYTES = 1 << 20
+#: most values a dense grid may hold: Dr.Jit arrays are indexed with 32 bits
+MAX_VALUES = 2 ** 32 - 1
 
 
 class GridFileError(ValueError):
@@ -83,13 +87,40 @@ def _check_shape(path, shape):
     if min(x, y, z) < MIN_RESOLUTION:
         _fail(path, f"resolution {x} x {y} x {z} (X x Y x Z); each axis needs at least "
                     f"{MIN_RESOLUTION} cells")
+    values = x * y * z * c
+    if values > MAX_VALUES:
+        _fail(path, f"{x} x {y} x {z} x {c} = {values:.4g} values; a dense grid holds at most "
+                    f"2^32 - 1 = {MAX_VALUES:.4g} (Dr.Jit's array index is 32 bits)")
+
+
+def check_regular_file(path) -> None:
+    """Raise :class:`GridFileError` unless ``path`` is a readable regular file, saying
+    what it is instead (missing, a folder, a symbolic-link loop, a FIFO or device:
+    opening a FIFO would block forever)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        target = os.path.islink(path) and os.readlink(path)
+        _fail(path, f"a symbolic link to '{target}', which does not exist" if target
+              else "file does not exist")
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            _fail(path, "a symbolic link loop")
+        _fail(path, f"cannot be read ({error.strerror})")
+    if stat.S_ISDIR(st.st_mode):
+        _fail(path, "is a folder, not a grid file")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else \
+            "a socket" if stat.S_ISSOCK(st.st_mode) else "a device"
+        _fail(path, f"is {kind}, not a regular file")
+    if not os.access(path, os.R_OK):
+        _fail(path, "is not readable (permission denied)")
 
 
 def read_header(path) -> GridHeader:
     """Validate and return the header of a ``.vol`` or ``.npy`` grid file."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        _fail(path, "file does not exist")
+    check_regular_file(path)
     ext = os.path.splitext(path)[1].lower()
     if ext == ".vol":
         return _read_vol_header(path)
@@ -229,7 +260,8 @@ def write_vol(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
     lo, hi = bbox
     header = VOL_HEADER.pack(VOL_MAGIC, VOL_VERSION, VOL_ENCODING_FLOAT32, x, y, z, c,
                              *map(float, lo), *map(float, hi))
-    with open(path, "wb") as f:
+    from mitsuba_plugins.output import atomic_path
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header)
         f.write(data.astype("<f4", copy=False).tobytes())
 
@@ -240,7 +272,9 @@ def write_grid(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
     if ext == ".vol":
         write_vol(path, data, bbox)
     elif ext == ".npy":
-        np.save(path, as_grid_array(data))
+        from mitsuba_plugins.output import atomic_path
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.save(f, as_grid_array(data))
     else:
         raise GridFileError(f"grid file '{path}': unknown extension '{ext}'; allowed: .vol "
                             "or .npy")

@@ -4,14 +4,18 @@ panel (PNG, matplotlib), and the images themselves (EXR + PNG)."""
 from __future__ import annotations
 
 import csv
-import json
+import io
 import math
 from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins import stats
+from mitsuba_plugins import output, stats
 from mitsuba_plugins.compare import FLOOR_SHARE, Report
+
+#: the files :func:`write_all` writes besides the images
+TABLES = ("table.md", "table.csv", "results.json")
+PLOTS = ("curves.png", "panel.png")
 
 COLUMNS = (  # header, Row attribute, format
     ("integrator", "integrator", "{}"),
@@ -68,31 +72,40 @@ def legend(report: Report) -> str:
     return "\n".join(lines)
 
 
+def image_name(integrator_label: str) -> str:
+    """File stem of an integrator's image (``path_rr:max_depth=5`` -> ``path_rr_max_depth-5``)."""
+    return integrator_label.replace(":", "_").replace("=", "-").replace("/", "-")
+
+
+def output_names(labels: list[str]) -> list[str]:
+    """Every file name :func:`write_all` writes for integrators of these labels."""
+    images = [image_name(name) + ext for name in labels for ext in (".exr", ".png")]
+    return list(TABLES) + list(PLOTS) + images
+
+
 def write_tables(report: Report, out: Path) -> list[Path]:
-    """``table.md``, ``table.csv`` and ``results.json`` (rows with their curves) in ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    md, csv_path, js = out / "table.md", out / "table.csv", out / "results.json"
-    md.write_text(table(report, markdown=True) + "\n\n" + legend(report) + "\n")
+    """``table.md``, ``table.csv`` and ``results.json`` (rows with their curves) in ``out``.
+    Non-finite numbers are written as empty CSV cells and JSON ``null``."""
+    md, csv_path, js = (out / name for name in TABLES)
+    output.write_text(md, table(report, markdown=True) + "\n\n" + legend(report) + "\n")
     rows = [{k: v for k, v in r.to_dict().items() if not k.startswith("curve_")}
             for r in report.rows]
-    with csv_path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    js.write_text(json.dumps(report.to_dict(), indent=1))
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    output.write_text(csv_path, text.getvalue())
+    output.write_json(js, {**report.to_dict(), "null_means": output.JSON_NULL_MEANS}, indent=1)
     return [md, csv_path, js]
 
 
 def write_images(report: Report, out: Path) -> list[Path]:
     """Each integrator's mean image as EXR and sRGB PNG."""
-    import mitsuba as mi
-    out.mkdir(parents=True, exist_ok=True)
     paths = []
     for row in report.rows:
-        exr = out / f"{row.integrator.replace(':', '_').replace('=', '-')}.exr"
-        bitmap = mi.Bitmap(np.ascontiguousarray(row.image, dtype=np.float32))
-        bitmap.write(str(exr))
-        mi.util.write_bitmap(str(exr.with_suffix(".png")), bitmap)
+        exr = out / f"{image_name(row.integrator)}.exr"
+        output.write_exr(exr, row.image)
+        output.write_png(exr.with_suffix(".png"), row.image)
         paths.append(exr)
     return paths
 
@@ -142,8 +155,7 @@ def plot_curves(report: Report, path: Path, title: str | None = None) -> Path:
     ax.grid(True, which="both", alpha=0.25)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    output.save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -176,8 +188,7 @@ def plot_panel(report: Report, path: Path, title: str | None = None) -> Path:
             ax.set_yticks([])
     fig.colorbar(im, ax=axes[1, :].tolist(), fraction=0.02, pad=0.01)
     fig.suptitle(title or f"{Path(report.scene).stem} ({report.mode})", fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, bbox_inches="tight")
+    output.save_figure(fig, path, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -189,6 +200,8 @@ def rel_se_map(ref: stats.Estimate) -> np.ndarray:
 
 def write_all(report: Report, out: Path) -> dict:
     """Tables, images, ``curves.png`` and ``panel.png`` in ``out``; returns their paths."""
+    output.check_targets([out / name for name in output_names([r.integrator for r in report.rows])])
     return {"tables": write_tables(report, out), "images": write_images(report, out),
-            "curves": plot_curves(report, out / "curves.png"),
-            "panel": plot_panel(report, out / "panel.png")}
+            "curves": plot_curves(report, out / PLOTS[0]),
+            "panel": plot_panel(report, out / PLOTS[1])}
+

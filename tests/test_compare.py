@@ -90,11 +90,14 @@ def test_cli_equal_time(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--time-budget", "0"], "--time-budget must be > 0"),
+    (["--time-budget", "0"], "--time-budget = 0.0 is invalid; allowed: a finite number"),
     (["--spp", "2", "--passes", "4"], "--spp (2) must be >= --passes (4)"),
-    (["--spp-per-pass", "0", "--time-budget", "1"], "--spp-per-pass must be >= 1"),
+    (["--spp-per-pass", "0", "--time-budget", "1"], "--spp-per-pass = 0 is invalid; allowed: an integer >= 1"),
     (["--ref-spp", "8"], "--ref-spp must be >= 16"),
-    (["--time-budget", "nan"], "--time-budget must be > 0"),
+    (["--time-budget", "nan"], "--time-budget = nan is invalid"),
+    (["--time-budget", "inf"], "--time-budget = inf is invalid"),   # would never end
+    (["--res", "0"], "--res = 0 is invalid; allowed: an integer >= 1"),
+    (["--seed", "-1"], "--seed = -1 is invalid; allowed: an integer in [0, 4294967295]"),
 ])
 def test_cli_rejects_bad_options(args, message, capsys, tmp_path):
     assert cli.main(["compare", SCENE, "-i", "path_rr", "--res", "8", "--cache", str(tmp_path),
