@@ -131,7 +131,7 @@ class VolpathDelta(PathRR):
             n = dr.size_v(mi.Spectrum)
             hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
         ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
-                            self.shadow_method())
+                            self.shadow_method(media))
 
         # ------------------------------ loop state ------------------------------
         ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -233,7 +233,7 @@ class VolpathDelta(PathRR):
         return dr.select(valid_ray, L, 0.0), valid_ray
 
     # -- the medium phase, overridden by volpath_raymarch ----------------------------
-    def shadow_method(self):
+    def shadow_method(self, media: SceneMedia):
         """Shadow-ray transmittance estimator handed to :func:`shadow_transmittance`."""
         return self.transmittance
 

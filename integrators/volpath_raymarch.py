@@ -9,7 +9,7 @@ from mitsuba_plugins.integrators.volpath_delta import VolpathDelta, VolumeContex
 from mitsuba_plugins.marching import (STEP_MODES, Marcher, march_flight, march_single,
                                       sample_cell_point)
 from mitsuba_plugins.mis import MIS
-from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params
+from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
 from mitsuba_plugins.surface import RussianRoulette
 from mitsuba_plugins.tracking import (FreeFlight, SceneMedia, homogeneous_transmittance,
                                       medium_interaction, shadow_transmittance)
@@ -20,6 +20,9 @@ VARIANT = mi.variant()
 MODES = ("single", "multi")
 #: Default step in world units: 100 steps across the 2-unit media of scenes/.
 DEFAULT_STEP_SIZE = 0.02
+#: Most steps one march may take across a medium: a step that would need more is
+#: refused at render time (a step of 1e-9 took over 150 s for 64 rays).
+MAX_STEPS_PER_MARCH = 1e5
 #: Default largest optical depth of a cell in ``majorant`` step mode.
 DEFAULT_STEP_OPTICAL_DEPTH = 0.25
 
@@ -105,8 +108,16 @@ class VolpathRaymarch(VolpathDelta):
         self.mis = MIS("power", 2.0)
 
     # -- the medium phase of volpath_delta's path loop, marched ---------------------
-    def shadow_method(self) -> Marcher:
+    def shadow_method(self, media: SceneMedia) -> Marcher:
         # Built at each render from the plugin's parameters; the steps are opaque.
+        extent = media.extent()
+        if media.heterogeneous and extent / self.step_size > MAX_STEPS_PER_MARCH:
+            raise PluginParameterError(
+                f"volpath_raymarch: parameter 'step_size' = {self.step_size:g} would cut a "
+                f"march across this scene's media (extent {extent:.3g}) into up to "
+                f"{extent / self.step_size:.3g} steps; allowed: >= "
+                f"{extent / MAX_STEPS_PER_MARCH:.3g} here (at most {MAX_STEPS_PER_MARCH:g} "
+                "steps per march)")
         return Marcher(self.step_mode, self.step_size, self.step_optical_depth)
 
     def gathers_medium_light(self, media: SceneMedia) -> bool:

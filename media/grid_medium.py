@@ -20,6 +20,20 @@ UPLOAD_CHUNK = 1 << 18
 #: back from its printed 6-digit matrix
 PARSED_TRANSFORM_MARGIN = 2e-3
 INTERPOLATIONS = {"trilinear": dr.FilterMode.Linear, "nearest": dr.FilterMode.Nearest}
+#: largest extinction (per world unit) a grid may reach, as the float32 product the
+#: kernels use (value x scale x sigma_t, rounded up for the majorant). Above it the
+#: optical depth of a flight (extinction x distance) could overflow float32 to inf and
+#: the spectral weights exp(tau_min - tau) to NaN: 1e30 leaves room for distances up
+#: to 3e8 units. Any medium this dense is opaque at float32 resolution anyway.
+MAX_EXTINCTION = 1e30
+#: largest optical depth of one voxel (extinction x its shortest world edge). Tracking
+#: cuts hot majorant cells into pieces whose number grows as the square root of this
+#: (mitsuba_plugins.tracking.MediumTracker.piece): at 1e8 the worst crossing stays
+#: within tracking's work budget, so the answer is the unbiased one, not its roulette
+#: fallback's. Transmittance through such a voxel is exp(-1e8) already.
+MAX_VOXEL_OPTICAL_DEPTH = 1e8
+#: smallest |det| of to_world's linear part relative to its largest entry cubed
+SINGULAR_TOLERANCE = 1e-12
 
 
 class GridMedium(mi.Medium):
@@ -104,6 +118,10 @@ class GridMedium(mi.Medium):
         super().__init__(props)
         p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
         scale = p.float("scale", 1.0, lo=0.0)
+        if not np.isfinite(np.float32(scale)):
+            raise PluginParameterError(
+                f"grid_medium: parameter 'scale' = {scale:g} is invalid; allowed: a finite "
+                "number >= 0 that float32 holds (at most 3.4e38)")
         self.albedo = _volume(p, "albedo", 0.75, hi=1.0)
         self.emission = _volume(p, "emission", None) if p.has("emission") else None
         self.cells = p.int("majorant_resolution", DEFAULT_RESOLUTION, lo=1, hi=1024)
@@ -115,6 +133,8 @@ class GridMedium(mi.Medium):
             self.interpolation = p.choice("interpolation", "trilinear", tuple(INTERPOLATIONS))
             to_world = _transform(p.props["to_world"]) if p.has("to_world") else \
                 mi.ScalarTransform4f()
+            if p.has("to_world"):
+                _check_invertible(p.props["to_world"])
             data, to_local, bbox, builder = self._load(self.filename, to_world,
                                                        p.bool("use_grid_bbox", False),
                                                        factor)
@@ -126,6 +146,9 @@ class GridMedium(mi.Medium):
             self.bbox = bbox
             self.sigma_t_factor = mi.Color3f(factor)
             self.channels = data.shape[3]
+            z, y, x = data.shape[:3]
+            # voxels per local unit on each axis, and whether lookups are trilinear
+            self._voxels = (mi.Vector3f(x, y, z), self.interpolation == "trilinear")
         else:
             given = [name for name in self.FILE_ONLY if p.has(name)]
             if given:
@@ -137,6 +160,7 @@ class GridMedium(mi.Medium):
             self.bbox = self.volume.bbox()
             self.channels = self.volume.channel_count()
             self.sigma_t_factor = mi.Color3f(1.0)
+            self._voxels = None  # a nested volume's lookups are Mitsuba's own
             builder = None
         self.scale = mi.Float(scale)
         chromatic = self.channels == 3 or len(set(_floats(self.sigma_t_factor))) > 1
@@ -189,9 +213,59 @@ class GridMedium(mi.Medium):
             # heterogeneous's majorant is scale * volume.max(); keep it bit for bit.
             grid_max = np.float32(self.volume.max() if self.volume is not None else builder.max)
         scale = np.float32(_floats(self.scale)[0])
-        self.global_majorant = dr.opaque(mi.Float, float(scale * grid_max))
-        self.majorant_grid = MajorantGrid(values * scale, to_local, float(scale * grid_max),
+        with np.errstate(over="ignore", invalid="ignore"):
+            majorant, cells = scale * grid_max, values * scale
+        self._check_extinction(float(_floats(self.scale)[0]), float(grid_max), majorant, cells)
+        if self.volume is None:
+            self._check_voxel_optical_depth(float(majorant))
+        #: what tracking needs to cut hot majorant segments into tighter pieces
+        #: (mitsuba_plugins.tracking.MediumTracker.piece), or None where no segment can
+        #: be hot: then the kernels carry no refinement code at all
+        self.refinement = self._voxels if self._has_hot_cells(cells, to_local) else None
+        self.global_majorant = dr.opaque(mi.Float, float(majorant))
+        self.majorant_grid = MajorantGrid(cells, to_local, float(majorant),
                                           minorants=lows * scale)
+
+    def _has_hot_cells(self, cells: np.ndarray, to_local) -> bool:
+        """Can a ray cross a majorant cell with optical depth (bound x length) above
+        tracking's REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
+        diagonal."""
+        from mitsuba_plugins.tracking import REFINE_OPTICAL_DEPTH
+        if self._voxels is None or not cells.size:
+            return False
+        linear = np.array(to_local.inverse().matrix, dtype=np.float64)[:3, :3]
+        rz, ry, rx = cells.shape
+        diagonals = [linear @ (np.array([sx, sy, 1.0]) / (rx, ry, rz))
+                     for sx in (-1, 1) for sy in (-1, 1)]
+        longest = max(float(np.linalg.norm(d)) for d in diagonals)
+        return float(np.max(cells)) * longest > REFINE_OPTICAL_DEPTH
+
+    def _check_voxel_optical_depth(self, majorant: float) -> None:
+        linear = np.array(self.to_local.inverse().matrix, dtype=np.float64)[:3, :3]
+        z, y, x = self.data.shape[:3]
+        edge = float(np.min(np.linalg.norm(linear, axis=0) / np.array([x, y, z])))
+        depth = majorant * edge
+        if depth <= MAX_VOXEL_OPTICAL_DEPTH:
+            return
+        raise PluginParameterError(
+            f"grid_medium: the densest voxel of filename '{self.filename}' has optical depth "
+            f"{depth:.3g} (extinction {majorant:.3g} x shortest voxel edge {edge:.3g}); "
+            f"allowed: at most {MAX_VOXEL_OPTICAL_DEPTH:g}: lower parameter 'scale' (any "
+            "voxel of optical depth above ~50 is opaque)")
+
+    def _check_extinction(self, scale: float, grid_max: float, majorant, cells) -> None:
+        """The extinction as the kernels compute it, in float32: finite and at most
+        :data:`MAX_EXTINCTION`, the majorants included (checking the doubles would let
+        scale = 1e39, inf in float32, through)."""
+        top = max(float(majorant), float(np.max(cells)) if cells.size else 0.0)
+        if np.isfinite(np.float32(scale)) and np.isfinite(top) and top <= MAX_EXTINCTION:
+            return
+        source = f"filename '{self.filename}'" if self.filename else "the sigma_t volume"
+        raise PluginParameterError(
+            f"grid_medium: extinction too large: parameter 'scale' = {scale:g} times the "
+            f"largest density of {source} (times sigma_t), {grid_max:g}, gives a majorant "
+            f"of {top:g} in float32; allowed: a product of at most {MAX_EXTINCTION:g} per "
+            "unit length")
 
     def _majorant_builder(self):
         """A filled :class:`MajorantBuilder` for the current data, and the grid's
@@ -361,6 +435,19 @@ def _weights(factor, channels: int) -> np.ndarray:
     """Per-channel weights of the grid for the gray majorant."""
     factor = np.asarray(factor, dtype=np.float32)
     return np.array([factor.max()], np.float32) if channels == 1 else factor
+
+
+def _check_invertible(value) -> None:
+    """Refuse a ``to_world`` that is singular (a zero scale makes the medium vanish) or
+    holds non-finite numbers."""
+    matrix = np.array(value.matrix, dtype=np.float64)
+    linear = matrix[:3, :3]
+    det = float(np.linalg.det(linear)) if np.all(np.isfinite(matrix)) else float("nan")
+    size = float(np.max(np.abs(linear))) if np.all(np.isfinite(linear)) else 0.0
+    if not (np.isfinite(det) and abs(det) > SINGULAR_TOLERANCE * size ** 3 and size > 0):
+        raise PluginParameterError(
+            f"grid_medium: parameter 'to_world' is singular or not finite (determinant of "
+            f"its 3x3 part {det:g}); allowed: an invertible transform (no zero scale)")
 
 
 def _transform(value) -> mi.ScalarTransform4f:
