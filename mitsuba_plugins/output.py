@@ -121,12 +121,23 @@ def atomic_path(path):
                                dir=folder)
     os.close(fd)
     PENDING.add(tmp)
+    existed = path.exists()
     try:
         yield tmp
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.chmod(tmp, _mode_for(path))
         os.replace(tmp, path)
+    except Exception as error:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        reason = str(error).strip().splitlines()[-1] if str(error).strip() else \
+            type(error).__name__
+        if tmp in reason:   # Mitsuba's stream errors name the temporary file
+            reason = reason.split(tmp, 1)[1].lstrip('": ')
+        raise OutputError(f"output '{path}': could not be written ({reason}); "
+                          + ("the file that was there is unchanged" if existed
+                             else "nothing was written")) from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

@@ -312,14 +312,19 @@ def _advance_segment(tracker: MediumTracker, ray: mi.Ray3f, seg: Segment, t, act
     return active, fetch, Segment(t_end, sigma_maj, t_cell, sigma_cell, sigma_min, dda)
 
 
-def _work_roulette(work: mi.UInt32, sampler: mi.Sampler, active):
-    """Past :data:`WORK_BUDGET` iterations, survive each with probability
-    :data:`WORK_SURVIVAL`: ``(work, survivors, dead)`` masks; survivors' weights are to
-    be divided by ``WORK_SURVIVAL``."""
+def _work_budget(tracker: MediumTracker, work: mi.UInt32, sampler: mi.Sampler, active,
+                 weight):
+    """One iteration of a tracking loop against :data:`WORK_BUDGET` (only for a hot
+    medium; elsewhere nothing is traced): past it, the iteration survives with
+    probability :data:`WORK_SURVIVAL` and ``weight`` (the throughput or transmittance)
+    is divided by it, or the lane stops with weight 0. Returns ``(work, weight, active)``."""
+    if not tracker.hot:
+        return work, weight, active
     work = work + 1
     over = active & (work > WORK_BUDGET)
     dies = over & (sampler.next_1d(over) >= WORK_SURVIVAL)
-    return work, over & ~dies, dies
+    weight = dr.select(dies, 0.0, dr.select(over, weight * (1.0 / WORK_SURVIVAL), weight))
+    return work, weight, active & ~dies
 
 
 @dr.syntax
@@ -361,11 +366,7 @@ def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampl
 
     while dr.hint(active, label="delta_tracking"):
         # ------------------- bounded work: roulette past the budget -------------------
-        if dr.hint(tracker.hot, mode="scalar"):
-            work, survive, dies = _work_roulette(work, sampler, active)
-            beta[survive] *= 1.0 / WORK_SURVIVAL
-            beta[dies] = 0.0
-            active &= ~dies
+        work, beta, active = _work_budget(tracker, work, sampler, active, beta)
 
         # ------------------- next piece or majorant segment when used up -------------------
         active, _, seg = _advance_segment(tracker, ray, seg, t, active, minorant=False)
@@ -437,11 +438,7 @@ def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sample
     active = mi.Bool(active) & (tmin < tmax)
 
     while dr.hint(active, label="transmittance"):
-        if dr.hint(tracker.hot, mode="scalar"):
-            work, survive, dies = _work_roulette(work, sampler, active)
-            T[survive] *= 1.0 / WORK_SURVIVAL
-            T[dies] = 0.0
-            active &= ~dies
+        work, T, active = _work_budget(tracker, work, sampler, active, T)
 
         active, fetch, seg = _advance_segment(tracker, ray, seg, t, active, minorant=residual)
         t_seg, sigma_maj = seg.t_end, seg.sigma_maj

@@ -63,7 +63,8 @@ def test_failed_write_keeps_the_old_file(tmp_path):
     proc = run_cli("render", CORNELL, "--res", "64", "--spp", "1", "-o", keep,
                    preexec_fn=_limit_file_size, env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})
     assert proc.returncode == 2, proc.stderr
-    assert "mitsuba-plugins: error:" in proc.stderr
+    assert f"mitsuba-plugins: error: output '{keep}': could not be written (" in proc.stderr
+    assert "File too large); the file that was there is unchanged" in proc.stderr
     for path, data in old.items():
         assert path.read_bytes() == data
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.exr", "keep.png"]
@@ -72,7 +73,9 @@ def test_failed_write_keeps_the_old_file(tmp_path):
 def test_atomic_path_failure_leaves_target_and_no_temporary(tmp_path):
     target = tmp_path / "table.md"
     target.write_text("old")
-    with pytest.raises(RuntimeError):
+    with pytest.raises(output.OutputError,
+                       match="output '.*table.md': could not be written \\(disk full\\); the file "
+                             "that was there is unchanged"):
         with output.atomic_path(target) as tmp:
             Path(tmp).write_text("half")
             raise RuntimeError("disk full")
