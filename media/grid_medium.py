@@ -118,7 +118,9 @@ class GridMedium(mi.Medium):
         super().__init__(props)
         p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
         scale = p.float("scale", 1.0, lo=0.0)
-        if not np.isfinite(np.float32(scale)):
+        with np.errstate(over="ignore"):   # an overflow to inf is what is refused here
+            scale_f32 = np.float32(scale)
+        if not np.isfinite(scale_f32):
             raise PluginParameterError(
                 f"grid_medium: parameter 'scale' = {scale:g} is invalid; allowed: a finite "
                 "number >= 0 that float32 holds (at most 3.4e38)")

@@ -96,7 +96,8 @@ class MajorantBuilder:
     def finish(self) -> np.ndarray:
         """``(Rz, Ry, Rx)`` float32 cell bounds."""
         cells = _reduce_axis(self.per_slice, 0, self.ranges[0])
-        return (cells * np.float32(1 + ROUNDING)).astype(np.float32)
+        with np.errstate(over="ignore"):   # inf: refused by the medium's checks
+            return (cells * np.float32(1 + ROUNDING)).astype(np.float32)
 
     def finish_min(self) -> np.ndarray:
         """``(Rz, Ry, Rx)`` float32 lower bounds of the extinction in each cell."""
