@@ -207,8 +207,13 @@ def sparsity_series(res: int, spp: int, runs: int, tmp: Path, ratios) -> list:
             row[f"{k}_s_per_sample"] = statistics.median(times[k]) / (spp * res * res)
         paths = spp * res * res
         for label, cells in (("ours", 16), ("builtin_estimate", 1)):
+            # volpath's stand-in: one global majorant and no refinement of hot segments
+            refine = tracking.REFINE_OPTICAL_DEPTH
+            if label == "builtin_estimate":
+                tracking.REFINE_OPTICAL_DEPTH = float("inf")
             counted = mi.load_dict(_base(res, grid_medium(str(path), 2.0,
                                                           majorant_resolution=cells)))
+            tracking.REFINE_OPTICAL_DEPTH = refine
             counters = tracking.count_collisions()
             mi.render(counted, integrator=mi.load_dict(
                 {"type": "volpath_delta", "max_depth": MAX_DEPTH, "transmittance": "ratio"}),

@@ -41,9 +41,13 @@ RATIO_ROULETTE_THRESHOLD = 0.1
 #: ... and then dies with probability max(RATIO_ROULETTE_MIN, 1 - T).
 RATIO_ROULETTE_MIN = 0.05
 #: A majorant segment of optical depth (sigma_maj x length) above this is walked in
-#: pieces with tighter bounds (:meth:`MediumTracker.piece`). Our scenes' segments stay
-#: below 7 (sparse.xml), so their kernels never take this path.
-REFINE_OPTICAL_DEPTH = 16.0
+#: pieces with tighter bounds (:meth:`MediumTracker.piece`); below it, plain tracking
+#: takes at most this many tentative collisions per segment on average, which is cheaper
+#: than pieces (each costs a lookup): at 16 the benchmark's max/mean-100 grid (cells of
+#: optical depth 43) was refined and its time per sample rose 1.37x over max/mean 30
+#: with the same collision counts. Our scenes' segments stay below 7 (sparse.xml); the
+#: hard cases of 1e4 (optical depth ~2000) and beyond are refined.
+REFINE_OPTICAL_DEPTH = 256.0
 #: Expected tentative collisions in one refined piece (1 minimises pieces + collisions).
 PIECE_OPTICAL_DEPTH = 1.0
 #: Relative slack on a piece's bound for float rounding (and, on CUDA, the 8-bit
@@ -52,7 +56,7 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 #: Loop iterations one tracking call may take before every further one is survived
 #: only with probability WORK_SURVIVAL (Russian roulette, unbiased: the weight of a
 #: survivor is divided by it). Traced only for a medium that can have hot segments
-#: (:attr:`MediumTracker.hot`): elsewhere every segment holds at most ~16 tentative
+#: (:attr:`MediumTracker.hot`): elsewhere every segment holds at most ~256 tentative
 #: collisions and a crossing visits at most Rx + Ry + Rz + 3 segments, so the work is
 #: bounded already, and the budget's counter and masked draw would cost 4-6% there
 #: (measured on smoke, sparse and chromatic). Media that grid_medium accepts (voxel
