@@ -47,9 +47,15 @@ class GridMedium(mi.Medium):
 
      * - filename
        - |string|
-       - Density grid: Mitsuba's binary ``.vol`` (1 or 3 channels) or a float ``.npy`` of
-         shape ``(Z, Y, X)`` or ``(Z, Y, X, C)``. Without it, ``sigma_t`` is the extinction
-         itself, as in ``heterogeneous``.
+       - Density grid: Mitsuba's binary ``.vol`` (1 or 3 channels), a float ``.npy`` of
+         shape ``(Z, Y, X)`` or ``(Z, Y, X, C)``, or an OpenVDB ``.vdb`` (float, half or
+         vec3s grid; read through Debian's ``python3-openvdb``, see
+         :mod:`mitsuba_plugins.vdb`). Without it, ``sigma_t`` is the extinction itself,
+         as in ``heterogeneous``.
+     * - grid
+       - |string|
+       - Which grid of a ``.vdb`` file gives the density; a missing name is an error
+         listing the file's grids. (Default: ``density``)
      * - sigma_t
        - |float|, |rgb| or |volume|
        - With ``filename``: a per-channel multiplier of the density (chromatic extinction),
@@ -71,7 +77,10 @@ class GridMedium(mi.Medium):
        - ``trilinear`` or ``nearest`` lookups of the ``filename`` grid. (Default: trilinear)
      * - to_world
        - |transform|
-       - Places the ``filename`` grid's unit cube in the world. (Default: identity)
+       - Places the ``filename`` grid's unit cube in the world; for a ``.vdb``, applies on
+         top of the file's own index-to-world transform (voxel ``(i, j, k)`` at the
+         transform of ``(i, j, k)``, background 0 outside the active voxels).
+         (Default: identity)
      * - use_grid_bbox
        - |bool|
        - Place the ``.vol`` grid in its header's bounding box (then ``to_world``), as
@@ -105,10 +114,10 @@ class GridMedium(mi.Medium):
     memory is about one copy of the raw grid (``gridvolume`` holds two).
     """
 
-    ALLOWED = ("filename", "sigma_t", "scale", "albedo", "emission", "interpolation",
+    ALLOWED = ("filename", "grid", "sigma_t", "scale", "albedo", "emission", "interpolation",
                "to_world", "use_grid_bbox", "majorant_resolution", "has_spectral_extinction",
                "sample_emitters")
-    FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox")
+    FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox", "grid")
 
     def __init__(self, props: mi.Properties):
         if not mi.is_rgb:
@@ -137,6 +146,11 @@ class GridMedium(mi.Medium):
                 mi.ScalarTransform4f()
             if p.has("to_world"):
                 _check_invertible(p.props["to_world"])
+            self.grid_name = p.props["grid"] if p.has("grid") else "density"
+            if p.has("grid") and not self.filename.lower().endswith(".vdb"):
+                raise PluginParameterError(
+                    "grid_medium: parameter 'grid' selects a grid of a .vdb file; "
+                    f"'{self.filename}' is not one")
             data, to_local, bbox, builder = self._load(self.filename, to_world,
                                                        p.bool("use_grid_bbox", False),
                                                        factor)
@@ -175,7 +189,15 @@ class GridMedium(mi.Medium):
     def _load(self, path, to_world, use_grid_bbox, factor):
         """Stream ``path`` into a device tensor, validating every slab; nothing is kept
         if any check fails."""
-        header = gridio.read_header(path)
+        header = gridio.read_header(path, self.grid_name)
+        if header.index_to_world is not None:
+            # OpenVDB placement: the file's index -> world transform, then to_world
+            from mitsuba_plugins.vdb import grid_to_world
+            matrix = np.array(to_world.matrix, dtype=np.float64) @ grid_to_world(header)
+            # composed and inverted in double precision; float32 only at the end
+            to_world = mi.ScalarTransform4f(dr.scalar.Matrix4f(matrix.astype(np.float32)),
+                                            dr.scalar.Matrix4f(
+                                                np.linalg.inv(matrix).T.astype(np.float32)))
         if use_grid_bbox and header.bbox is None:
             raise PluginParameterError(
                 f"grid_medium: parameter 'use_grid_bbox' needs a .vol file (with a bounding "

@@ -94,7 +94,7 @@ def cmd_grid_info(args) -> int:
     from mitsuba_plugins import gridio
     invalid = 0
     for path in args.files:
-        info = gridio.grid_info(path, args.majorant_resolution)
+        info = gridio.grid_info(path, args.majorant_resolution, args.grid)
         if args.json:
             info["null_means"] = output.JSON_NULL_MEANS
             print(output.dumps_json(info, indent=2))
@@ -146,11 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_compare)
 
-    g = sub.add_parser("grid", help="inspect density grids (.vol, .npy)")
+    g = sub.add_parser("grid", help="inspect density grids (.vol, .npy, .vdb)")
     gsub = g.add_subparsers(dest="grid_command", required=True)
     gi = gsub.add_parser("info", help="shape, bounds, density statistics, majorant-grid "
                                       "emptiness")
-    gi.add_argument("files", nargs="+", help=".vol or .npy grid files")
+    gi.add_argument("files", nargs="+", help=".vol, .npy or .vdb grid files")
+    gi.add_argument("--grid", default="density",
+                    help="which grid of a .vdb file (default density); all are listed")
     gi.add_argument("--majorant-resolution", type=int, default=16,
                     help="majorant cells per axis, in [1, 1024] (default 16)")
     gi.add_argument("--json", action="store_true", help="print JSON")

@@ -60,6 +60,9 @@ class GridHeader:
     offset: int  # byte offset of the data
     dtype: np.dtype  # on-disk element type
     fortran_order: bool = False
+    vdb_grid: str | None = None  # .vdb: the grid read (mitsuba_plugins.vdb)
+    index_min: tuple | None = None  # .vdb: index of the box's first voxel
+    index_to_world: tuple | None = None  # .vdb: the file's 4x4 index -> world matrix
 
     @property
     def resolution(self) -> tuple:
@@ -117,8 +120,9 @@ def check_regular_file(path) -> None:
         _fail(path, "is not readable (permission denied)")
 
 
-def read_header(path) -> GridHeader:
-    """Validate and return the header of a ``.vol`` or ``.npy`` grid file."""
+def read_header(path, grid: str = "density") -> GridHeader:
+    """Validate and return the header of a ``.vol``, ``.npy`` or ``.vdb`` grid file
+    (``grid``: which grid of a ``.vdb``)."""
     path = os.fspath(path)
     check_regular_file(path)
     ext = os.path.splitext(path)[1].lower()
@@ -126,7 +130,11 @@ def read_header(path) -> GridHeader:
         return _read_vol_header(path)
     if ext == ".npy":
         return _read_npy_header(path)
-    _fail(path, f"unknown extension '{ext}'; allowed: .vol (Mitsuba binary grid) or .npy")
+    if ext == ".vdb":
+        from mitsuba_plugins.vdb import read_vdb_header
+        return read_vdb_header(path, grid)
+    _fail(path, f"unknown extension '{ext}'; allowed: .vol (Mitsuba binary grid), .npy "
+                "or .vdb (OpenVDB)")
 
 
 def _read_vol_header(path) -> GridHeader:
@@ -209,6 +217,10 @@ def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):
     a Fortran-ordered ``.npy`` is loaded whole first.
     """
     z, y, x, c = header.shape
+    if header.vdb_grid is not None:
+        from mitsuba_plugins.vdb import iter_vdb_slabs
+        yield from iter_vdb_slabs(header, slab_bytes)
+        return
     if header.fortran_order:
         data = np.load(header.path).reshape(header.shape)
         for z0 in range(0, z, 1):
@@ -227,12 +239,12 @@ def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):
             yield z0, raw.astype(np.float32, copy=False).reshape(k, y, x, c)
 
 
-def read_grid(path, check: bool = True) -> tuple:
+def read_grid(path, check: bool = True, grid: str = "density") -> tuple:
     """Load a whole grid: ``(data (Z, Y, X, C) float32, bbox or None)``.
 
     With ``check``, non-finite and negative values raise :class:`GridFileError`.
     """
-    header = read_header(path)
+    header = read_header(path, grid)
     data = np.empty(header.shape, dtype=np.float32)
     for z0, slab in iter_slabs(header):
         if check:
@@ -280,11 +292,13 @@ def write_grid(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
                             "or .npy")
 
 
-def grid_info(path, cells: int = 16) -> dict:
-    """Summary of a grid file, read slab by slab: shape, bounds, density statistics and
-    the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0."""
+def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
+    """Summary of a grid file, read slab by slab: shape, bounds, density statistics,
+    the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0, and the
+    memory its (dense) storage takes; for a ``.vdb``, every grid of the file and the
+    world bounds from its transform."""
     from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
-    header = read_header(path)
+    header = read_header(path, grid)
     z, y, x, c = header.shape
     builder = MajorantBuilder(header.shape, resolution_for(header.shape, cells))
     total, vmin, vmax, nonfinite = 0.0, np.inf, 0.0, 0
@@ -297,7 +311,18 @@ def grid_info(path, cells: int = 16) -> dict:
         builder.add(z0, slab)
     mean = total / header.size
     cells_max = builder.finish()
-    bbox = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    bbox, bbox_from, extra = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), \
+        "header" if header.bbox else "unit cube", {}
+    if header.vdb_grid is not None:
+        from mitsuba_plugins.vdb import grid_to_world, vdb_info
+        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+        world = (grid_to_world(header) @ corners.T)[:3].T
+        bbox, bbox_from = (world.min(axis=0).tolist(), world.max(axis=0).tolist()), \
+            "index-to-world transform (active box + 1 voxel)"
+        extra = {"grid": header.vdb_grid, "index_min": list(header.index_min),
+                 "vdb_grids": [{k: g[k] for k in ("name", "type", "active_voxels",
+                                                  "index_min", "index_max", "min", "max")}
+                               for g in vdb_info(path)]}
     return {
         "file": header.path,
         "format": os.path.splitext(header.path)[1][1:],
@@ -305,7 +330,7 @@ def grid_info(path, cells: int = 16) -> dict:
         "channels": c,
         "bbox_min": list(bbox[0]),
         "bbox_max": list(bbox[1]),
-        "bbox_from": "header" if header.bbox else "unit cube",
+        "bbox_from": bbox_from,
         "min": vmin,
         "max": vmax,
         "mean": mean,
@@ -315,6 +340,8 @@ def grid_info(path, cells: int = 16) -> dict:
         "majorant_resolution": list(builder.resolution),
         "majorant_empty_fraction": float(np.mean(cells_max == 0)),
         "majorant_mean_over_max": float(cells_max.mean() / vmax) if vmax > 0 else 0.0,
+        "storage_bytes": 4 * header.size,
+        **extra,
     }
 
 
@@ -327,6 +354,7 @@ def format_info(info: dict) -> str:
         ("file", info["file"]),
         ("resolution", f"{res} (X x Y x Z), {info['channels']} channel(s), {info['format']}"),
         ("bounds", f"{fmt(info['bbox_min'])} - {fmt(info['bbox_max'])} ({info['bbox_from']})"),
+        ("storage", f"{info['storage_bytes'] / 2 ** 20:.4g} MiB (dense float32)"),
         ("density min/max", f"{info['min']:.6g} / {info['max']:.6g}"),
         ("density mean", f"{info['mean']:.6g}"),
         ("max / mean", f"{info['max_over_mean']:.4g}"),
@@ -334,6 +362,13 @@ def format_info(info: dict) -> str:
                           f"{info['majorant_empty_fraction']:.4f}; mean cell bound / max "
                           f"{info['majorant_mean_over_max']:.4f}"),
     ]
+    for g in info.get("vdb_grids", []):
+        box = (f"index {g['index_min']} - {g['index_max']}" if g["index_min"] is not None
+               else "no active voxels")
+        mark = " (read)" if g["name"] == info["grid"] else ""
+        lines.append((f"grid {g['name']!r}{mark}", f"{g['type']}, {g['active_voxels']} active "
+                                                   f"voxels, {box}, values {g['min']} - "
+                                                   f"{g['max']}"))
     if info["nonfinite"] or info["negative"]:
         lines.append(("INVALID", f"{info['nonfinite']} non-finite value(s)"
                       + (", negative values" if info["negative"] else "")

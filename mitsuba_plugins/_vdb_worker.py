@@ -1,0 +1,87 @@
+"""Reads OpenVDB files for :mod:`mitsuba_plugins.vdb`; runs under the Python that has
+OpenVDB's module (Debian's ``python3-openvdb``, built for Debian's own Python and numpy
+1.x), never inside the package's environment. It imports only pyopenvdb, numpy and the
+standard library.
+
+``info FILE``: one JSON line describing every grid of FILE (name, value type, class,
+background, active voxels, active index box, value range, index-to-world matrix, whether
+the transform is linear).
+
+``read FILE GRID I0 J0 K0 NX NY NZ SLAB``: the values of GRID in the index box starting
+at (I0, J0, K0) of NX x NY x NZ voxels (background outside the active voxels and tiles),
+as raw little-endian float32 on stdout, SLAB k-slices at a time, each slab C-ordered
+``(k, j, i, channel)``.
+"""
+import json
+import sys
+
+
+def _fail(message):
+    sys.stderr.write(message.replace("\n", " ") + "\n")
+    sys.exit(3)
+
+
+def _open(path, name=None):
+    import pyopenvdb as vdb
+    try:
+        if name is None:
+            return vdb.readAll(path)[0]
+        return vdb.read(path, name)
+    except Exception as error:  # OpenVDB's IoError, KeyError, ...: one line for the caller
+        _fail(f"{type(error).__name__}: {error}")
+
+
+def _matrix(transform):
+    """4x4 index -> world matrix (column vectors) of an affine transform."""
+    origin = transform.indexToWorld((0, 0, 0))
+    axes = [transform.indexToWorld(tuple(1 if a == b else 0 for b in range(3)))
+            for a in range(3)]
+    rows = [[axes[c][r] - origin[r] for c in range(3)] + [origin[r]] for r in range(3)]
+    return rows + [[0.0, 0.0, 0.0, 1.0]]
+
+
+def info(path):
+    grids = []
+    for grid in _open(path):
+        lo, hi = grid.evalActiveVoxelBoundingBox()
+        count = grid.activeVoxelCount()
+        background = grid.background
+        vmin, vmax = grid.evalMinMax() if count else (background, background)
+        transform = grid.transform
+        grids.append({
+            "name": grid.name, "type": grid.valueTypeName,
+            "class": str(grid.gridClass), "active_voxels": int(count),
+            "background": list(background) if isinstance(background, tuple) else background,
+            "index_min": list(lo) if count else None, "index_max": list(hi) if count else None,
+            "min": list(vmin) if isinstance(vmin, tuple) else vmin,
+            "max": list(vmax) if isinstance(vmax, tuple) else vmax,
+            "transform_type": transform.typeName, "linear": bool(transform.isLinear),
+            "index_to_world": _matrix(transform) if transform.isLinear else None,
+            "half_float": bool(grid.saveFloatAsHalf),
+        })
+    sys.stdout.write(json.dumps(grids) + "\n")
+
+
+def read(path, name, i0, j0, k0, nx, ny, nz, slab):
+    import numpy as np
+    grid = _open(path, name)
+    channels = 3 if grid.valueTypeName.startswith("vec3") else 1
+    out = sys.stdout.buffer
+    for k in range(0, nz, slab):
+        nk = min(slab, nz - k)
+        shape = (nx, ny, nk, channels) if channels > 1 else (nx, ny, nk)
+        block = np.zeros(shape, np.float32)
+        grid.copyToArray(block, ijk=(i0, j0, k0 + k))
+        block = block.reshape(nx, ny, nk, channels).transpose(2, 1, 0, 3)
+        out.write(np.ascontiguousarray(block, dtype="<f4").tobytes())
+    out.flush()
+
+
+if __name__ == "__main__":
+    command, *args = sys.argv[1:]
+    if command == "info":
+        info(args[0])
+    elif command == "read":
+        read(args[0], args[1], *map(int, args[2:]))
+    else:
+        _fail(f"unknown command {command}")

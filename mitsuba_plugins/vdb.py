@@ -1,0 +1,154 @@
+"""OpenVDB input (``.vdb``), read through OpenVDB's own library.
+
+OpenVDB's Python module is Debian's ``python3-openvdb`` (OpenVDB 10, module
+``pyopenvdb``): it is not on PyPI and is built against Debian's Python and numpy 1.x,
+so in an environment with numpy 2 (or another Python build) it cannot be imported. The
+file is therefore read by a worker process (:mod:`mitsuba_plugins._vdb_worker`) run with
+the Python that has the module (``/usr/bin/python3``, or ``MITSUBA_PLUGINS_VDB_PYTHON``),
+which streams the grid's values back through a pipe, slab by slab. The package's own
+environment needs no pin, and ``.vol`` / ``.npy`` never touch OpenVDB. Chose this over
+pinning numpy < 2 in the venv because the pin would bind every user of the package to
+Debian's numpy ABI, and would still fail with a Python other than Debian's 3.11.
+
+Placement follows OpenVDB: voxel ``(i, j, k)``'s value sits at the file's index-to-world
+transform applied to ``(i, j, k)``, values are interpolated between voxel centres, and
+outside the active voxels and tiles the value is the grid's background, which must be 0.
+The loaded box is the active index box grown by one voxel of background on every side,
+so trilinear lookups fall to 0 across the border exactly as OpenVDB's do.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+WORKER = Path(__file__).with_name("_vdb_worker.py")
+#: where OpenVDB's Python module is looked for (the variable, if set, alone)
+PYTHON_VARIABLE = "MITSUBA_PLUGINS_VDB_PYTHON"
+DEFAULT_PYTHON = "/usr/bin/python3"
+INSTALL_HINT = "apt-get install -y python3-openvdb"
+#: value types accepted for a density grid, and their channel counts
+CHANNELS = {"float": 1, "half": 1, "vec3s": 3}
+#: voxels of background around the active box (trilinear falls to 0 across it)
+PAD = 1
+
+
+def _fail(path, what: str):
+    from mitsuba_plugins.gridio import GridFileError
+    raise GridFileError(f"grid file '{path}': {what}")
+
+
+@functools.lru_cache(maxsize=None)
+def _python(candidates: tuple) -> str | None:
+    for exe in candidates:
+        if exe and os.access(exe, os.X_OK):
+            probe = subprocess.run([exe, "-c", "import pyopenvdb"], capture_output=True)
+            if probe.returncode == 0:
+                return exe
+    return None
+
+
+def openvdb_python(path="") -> str:
+    """The Python executable that can import OpenVDB's module; an error naming the apt
+    package when there is none."""
+    env = os.environ.get(PYTHON_VARIABLE)
+    candidates = (env,) if env else (DEFAULT_PYTHON,)
+    exe = _python(candidates)
+    if exe is None:
+        _fail(path, f"reading .vdb needs OpenVDB's Python module (pyopenvdb), which "
+                    f"{' / '.join(c for c in candidates if c)} cannot import: {INSTALL_HINT} "
+                    "(.vol and .npy grids need nothing)")
+    return exe
+
+
+def _run(path, *args) -> subprocess.CompletedProcess:
+    proc = subprocess.run([openvdb_python(path), str(WORKER), *map(str, args)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        reason = (proc.stderr.strip().splitlines() or ["no message"])[-1]
+        _fail(path, f"not a readable OpenVDB file ({reason})")
+    return proc
+
+
+def vdb_info(path) -> list:
+    """Every grid of ``path``: a list of dicts (see :mod:`mitsuba_plugins._vdb_worker`)."""
+    return json.loads(_run(path, "info", os.fspath(path)).stdout)
+
+
+def read_vdb_header(path, grid: str):
+    """A :class:`~mitsuba_plugins.gridio.GridHeader` for grid ``grid`` of ``path``: its
+    active box grown by :data:`PAD` voxels, refusing what cannot be placed or stored."""
+    from mitsuba_plugins.gridio import GridHeader, _check_shape
+    grids = vdb_info(path)
+    found = [g for g in grids if g["name"] == grid]
+    if not found:
+        names = ", ".join(repr(g["name"]) for g in grids) or "none"
+        _fail(path, f"no grid named {grid!r}; the file holds: {names}")
+    g = found[0]
+    if g["type"] not in CHANNELS:
+        _fail(path, f"grid {grid!r} holds {g['type']} values; allowed: "
+                    f"{', '.join(CHANNELS)}")
+    background = np.asarray(g["background"], dtype=np.float64)
+    if np.any(background != 0):
+        _fail(path, f"grid {grid!r} has background {g['background']}; allowed: 0 (a "
+                    "non-zero background would fill all space)")
+    if not g["linear"]:
+        _fail(path, f"grid {grid!r} has a {g['transform_type']} transform; allowed: an "
+                    "affine (linear) transform, not a frustum")
+    matrix = np.array(g["index_to_world"], dtype=np.float64)
+    det = np.linalg.det(matrix[:3, :3])
+    if not (np.all(np.isfinite(matrix)) and abs(det) > 1e-30):
+        _fail(path, f"grid {grid!r} has a singular index-to-world transform")
+    lo = np.array(g["index_min"] if g["index_min"] is not None else [0, 0, 0])
+    hi = np.array(g["index_max"] if g["index_max"] is not None else [0, 0, 0])
+    nx, ny, nz = (hi - lo + 1 + 2 * PAD).tolist()
+    shape = (nz, ny, nx, CHANNELS[g["type"]])
+    _check_shape(path, shape)
+    return GridHeader(os.fspath(path), shape, None, 0, np.dtype("<f4"), vdb_grid=grid,
+                      index_min=tuple((lo - PAD).tolist()),
+                      index_to_world=tuple(map(tuple, matrix.tolist())))
+
+
+def iter_vdb_slabs(header, slab_bytes: int):
+    """Yield ``(z0, slab)``: float32 ``(k, Y, X, C)`` slabs of the header's box, read by
+    the worker and streamed through a pipe (one slab in memory at a time)."""
+    z, y, x, c = header.shape
+    per_slab = max(1, slab_bytes // (4 * x * y * c))
+    i0, j0, k0 = header.index_min
+    args = ["read", header.path, header.vdb_grid, i0, j0, k0, x, y, z, per_slab]
+    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, args)],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        try:
+            for z0 in range(0, z, per_slab):
+                k = min(per_slab, z - z0)
+                count = k * y * x * c
+                raw = proc.stdout.read(4 * count)
+                if len(raw) != 4 * count:
+                    proc.wait()
+                    reason = proc.stderr.read().decode(errors="replace").strip()
+                    _fail(header.path, "reading grid values failed ("
+                          + (reason.splitlines()[-1] if reason else "stream ended early")
+                          + ")")
+                yield z0, np.frombuffer(raw, dtype="<f4").reshape(k, y, x, c)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+
+
+def grid_to_world(header) -> np.ndarray:
+    """4x4 map from the loaded box's unit cube (voxel ``x``'s centre at
+    ``(x + 1/2) / N``) to world space through the file's index-to-world transform."""
+    z, y, x, _ = header.shape
+    matrix = np.array(header.index_to_world, dtype=np.float64)
+    unit_to_index = np.diag([x, y, z, 1.0])
+    unit_to_index[:3, 3] = np.array(header.index_min, dtype=np.float64) - 0.5
+    return matrix @ unit_to_index
+
+
+if __name__ == "__main__":   # a quick look: python -m mitsuba_plugins.vdb FILE
+    print(json.dumps(vdb_info(sys.argv[1]), indent=1))
