@@ -277,7 +277,11 @@ FURNACE_INTEGRATORS = {**VOLUMETRIC,
 #: come out low. Measured at 16x16 x 64 spp, sigma_t 1e4: 0.79 for volpath_delta and
 #: 0.86 for Mitsuba's volpath; 1.00 and 0.99 without roulette. So these furnaces run
 #: without roulette (rr_depth 1e6, at 8x8 x 16 spp), where every path ends by leaving.
-DENSE_FURNACES = ("extinction_1e4", "grid_1e4")
+#: The one dense voxel (1e4) has the same tail on the paths that enter it: volpath_delta
+#: at 16x16 x 64 spp, seeds 7-11, gave t = -2.54 / -3.43 / -2.28 / 0.64 / -0.87 with
+#: roulette and 1.57 / -0.22 / 0.35 / 0.22 / 1.40 without (the same with hot cells
+#: refined: -3.39 ... and 0.42 ...); it passed with roulette by the luck of one stream.
+DENSE_FURNACES = ("extinction_1e4", "grid_1e4", "one_dense_voxel")
 
 
 def _furnace(medium, res):
