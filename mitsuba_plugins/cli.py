@@ -107,6 +107,14 @@ def cmd_grid_info(args) -> int:
     return 1 if invalid else 0
 
 
+def cmd_grid_convert(args) -> int:
+    from mitsuba_plugins import gridio
+    gridio.convert(args.source, args.target, args.grid,
+                   report=lambda line: print(line, flush=True))
+    print(f"wrote {args.target}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mitsuba-plugins", description=__doc__.splitlines()[0])
     p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
@@ -157,6 +165,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="majorant cells per axis, in [1, 1024] (default 16)")
     gi.add_argument("--json", action="store_true", help="print JSON")
     gi.set_defaults(func=cmd_grid_info)
+    gc = gsub.add_parser("convert", help="convert a grid (.vol, .npy, .vdb) to .vol or .npy "
+                                         "(dense; its size is printed first)")
+    gc.add_argument("source", help=".vol, .npy or .vdb grid file")
+    gc.add_argument("target", help=".vol (keeps the world box) or .npy")
+    gc.add_argument("--grid", default="density", help="which grid of a .vdb (default density)")
+    gc.set_defaults(func=cmd_grid_convert)
     return p
 
 
@@ -197,8 +211,10 @@ def check_options(args) -> None:
         output.check_targets([folder / name for name in rep.output_names(labels)],
                              option="-o/--output")
         output.check_folder_target(args.cache, option="--cache")
-    elif args.command == "grid":
+    elif args.command == "grid" and args.grid_command == "info":
         _int_range(args, "--majorant-resolution", 1, 1024)
+    elif args.command == "grid" and args.grid_command == "convert":
+        output.check_targets([args.target], extensions=(".vol", ".npy"), option="OUT")
 
 
 def _run(args, result: dict) -> None:

@@ -292,6 +292,52 @@ def write_grid(path, data, bbox=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))) -> None:
                             "or .npy")
 
 
+def world_box(header: GridHeader) -> tuple:
+    """``(lo, hi, rotated)``: the axis-aligned world box of a grid's voxel cells (a
+    ``.vol`` header's box, the unit cube for ``.npy``, the transformed box for ``.vdb``),
+    and whether the file's transform rotates or shears (a ``.vol`` box cannot)."""
+    if header.vdb_grid is None:
+        lo, hi = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+        return tuple(map(float, lo)), tuple(map(float, hi)), False
+    from mitsuba_plugins.vdb import grid_to_world
+    matrix = grid_to_world(header)
+    corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    world = (matrix @ corners.T)[:3].T
+    linear = matrix[:3, :3]
+    rotated = bool(np.any(np.abs(linear - np.diag(np.diag(linear))) > 1e-9 * np.abs(linear).max()))
+    return tuple(world.min(axis=0).tolist()), tuple(world.max(axis=0).tolist()), rotated
+
+
+def convert(source, target, grid: str = "density", report=print) -> dict:
+    """Write grid ``source`` (``.vol``, ``.npy`` or ``.vdb``) as ``target`` (``.vol`` or
+    ``.npy``), slab by slab (one slab in memory), validating every value, to a temporary
+    name renamed when complete. Both targets are dense: ``report`` is told the size
+    before anything is written. A ``.vol`` keeps the world box (a ``.vdb``'s rotation
+    cannot be kept: ``report`` says so); ``.npy`` keeps the values only."""
+    from mitsuba_plugins.output import atomic_path, check_targets
+    header = read_header(source, grid)
+    ext = os.path.splitext(os.fspath(target))[1].lower()
+    check_targets([target], extensions=(".vol", ".npy"), option="OUT")
+    z, y, x, c = header.shape
+    size = 4 * header.size
+    lo, hi, rotated = world_box(header)
+    report(f"{target}: {x} x {y} x {z} x {c} float32 values, {size / 2 ** 20:.4g} MiB (dense)")
+    if rotated and ext == ".vol":
+        report(f"{target}: note: the file's transform rotates or shears the grid; a .vol "
+               "keeps its axis-aligned world box only (place it with to_world)")
+    with atomic_path(target) as tmp, open(tmp, "wb") as f:
+        if ext == ".vol":
+            f.write(VOL_HEADER.pack(VOL_MAGIC, VOL_VERSION, VOL_ENCODING_FLOAT32, x, y, z, c,
+                                    *lo, *hi))
+        else:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": "<f4", "fortran_order": False, "shape": header.shape})
+        for _, slab in iter_slabs(header):
+            check_values(header.path, "data", slab)
+            f.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
+    return {"shape": header.shape, "bytes": size, "bbox": (lo, hi), "rotated": rotated}
+
+
 def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
     """Summary of a grid file, read slab by slab: shape, bounds, density statistics,
     the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0, and the
