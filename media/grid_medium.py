@@ -257,7 +257,7 @@ class GridMedium(mi.Medium):
         from mitsuba_plugins.tracking import REFINE_OPTICAL_DEPTH
         if self._voxels is None or not cells.size:
             return False
-        linear = np.array(to_local.inverse().matrix, dtype=np.float64)[:3, :3]
+        linear = _world_linear(to_local)
         rz, ry, rx = cells.shape
         diagonals = [linear @ (np.array([sx, sy, 1.0]) / (rx, ry, rz))
                      for sx in (-1, 1) for sy in (-1, 1)]
@@ -265,7 +265,7 @@ class GridMedium(mi.Medium):
         return float(np.max(cells)) * longest > REFINE_OPTICAL_DEPTH
 
     def _check_voxel_optical_depth(self, majorant: float) -> None:
-        linear = np.array(self.to_local.inverse().matrix, dtype=np.float64)[:3, :3]
+        linear = _world_linear(self.to_local)
         z, y, x = self.data.shape[:3]
         edge = float(np.min(np.linalg.norm(linear, axis=0) / np.array([x, y, z])))
         depth = majorant * edge
@@ -472,6 +472,12 @@ def _check_invertible(value) -> None:
         raise PluginParameterError(
             f"grid_medium: parameter 'to_world' is singular or not finite (determinant of "
             f"its 3x3 part {det:g}); allowed: an invertible transform (no zero scale)")
+
+
+def _world_linear(to_local) -> np.ndarray:
+    """The 3x3 linear part of a grid's local -> world map (columns: the world images of
+    the local unit axes)."""
+    return np.array(to_local.inverse().matrix, dtype=np.float64)[:3, :3]
 
 
 def _transform(value) -> mi.ScalarTransform4f:

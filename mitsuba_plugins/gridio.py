@@ -315,9 +315,9 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
     before anything is written. A ``.vol`` keeps the world box (a ``.vdb``'s rotation
     cannot be kept: ``report`` says so); ``.npy`` keeps the values only."""
     from mitsuba_plugins.output import atomic_path, check_targets
+    check_targets([target], extensions=(".vol", ".npy"), option="OUT")
     header = read_header(source, grid)
     ext = os.path.splitext(os.fspath(target))[1].lower()
-    check_targets([target], extensions=(".vol", ".npy"), option="OUT")
     z, y, x, c = header.shape
     size = 4 * header.size
     lo, hi, rotated = world_box(header)
@@ -357,14 +357,11 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
         builder.add(z0, slab)
     mean = total / header.size
     cells_max = builder.finish()
-    bbox, bbox_from, extra = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), \
-        "header" if header.bbox else "unit cube", {}
+    lo, hi, _ = world_box(header)
+    bbox, bbox_from, extra = (lo, hi), "header" if header.bbox else "unit cube", {}
     if header.vdb_grid is not None:
-        from mitsuba_plugins.vdb import grid_to_world, vdb_info
-        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        world = (grid_to_world(header) @ corners.T)[:3].T
-        bbox, bbox_from = (world.min(axis=0).tolist(), world.max(axis=0).tolist()), \
-            "index-to-world transform (active box + 1 voxel)"
+        from mitsuba_plugins.vdb import vdb_info
+        bbox_from = "index-to-world transform (active box + 1 voxel)"
         extra = {"grid": header.vdb_grid, "index_min": list(header.index_min),
                  "vdb_grids": [{k: g[k] for k in ("name", "type", "active_voxels",
                                                   "index_min", "index_max", "min", "max")}

@@ -487,6 +487,10 @@ def _is_chromatic(medium: mi.Medium) -> bool:
     return bool(np.ptp(values) > 0)
 
 
+def _diagonal(bbox) -> float:
+    return float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min)))
+
+
 def scene_media(scene: mi.Scene) -> list:
     """Distinct media referenced by the scene's shapes and sensors, in scene order."""
     found, seen = [], set()
@@ -511,12 +515,10 @@ class SceneMedia:
 
     def __init__(self, scene: mi.Scene):
         media = scene_media(scene)
-        self.scene_bbox = scene.bbox()
+        self.scene_extent = _diagonal(scene.bbox())
         self.any = bool(media)
         homogeneous = [m for m in media if m.is_homogeneous()]
-        extent = float(np.linalg.norm(np.array(self.scene_bbox.max)
-                                      - np.array(self.scene_bbox.min)))
-        self.trackers = {id(m): MediumTracker(m, extent) for m in media
+        self.trackers = {id(m): MediumTracker(m, self.scene_extent) for m in media
                          if not m.is_homogeneous()}
         self.homogeneous = bool(homogeneous)
         self.heterogeneous = bool(self.trackers)
@@ -532,11 +534,8 @@ class SceneMedia:
     def extent(self) -> float:
         """Longest stretch a ray can travel through one heterogeneous medium: the
         largest diagonal of their bounding boxes (the scene's, for media without one)."""
-        sizes = []
-        for tracker in self.trackers.values():
-            bbox = getattr(tracker.medium, "bbox", None)
-            bbox = self.scene_bbox if bbox is None else bbox
-            sizes.append(float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min))))
+        sizes = [self.scene_extent if getattr(t.medium, "bbox", None) is None
+                 else _diagonal(t.medium.bbox) for t in self.trackers.values()]
         return max(sizes, default=0.0)
 
     def call(self, medium: mi.MediumPtr, fn, *args):

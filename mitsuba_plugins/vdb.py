@@ -22,7 +22,6 @@ import functools
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -149,6 +148,3 @@ def grid_to_world(header) -> np.ndarray:
     unit_to_index[:3, 3] = np.array(header.index_min, dtype=np.float64) - 0.5
     return matrix @ unit_to_index
 
-
-if __name__ == "__main__":   # a quick look: python -m mitsuba_plugins.vdb FILE
-    print(json.dumps(vdb_info(sys.argv[1]), indent=1))
