@@ -15,6 +15,7 @@ import datetime
 import os
 import platform
 import statistics
+import subprocess
 import time
 from pathlib import Path
 
@@ -39,6 +40,20 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def device_model(variant: str) -> str:
+    """The processor that runs ``variant``: the GPU's name for a CUDA variant."""
+    if variant.startswith("cuda"):
+        try:
+            out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                 capture_output=True, text=True, timeout=30).stdout.strip()
+            if out:
+                return out.splitlines()[0] + f" (host: {cpu_model()})"
+        except (OSError, subprocess.SubprocessError):
+            pass
+        return "NVIDIA GPU (nvidia-smi unavailable)"
+    return cpu_model()
 
 
 def timed_render(scene, integrator, spp, seed):

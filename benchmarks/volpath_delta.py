@@ -34,9 +34,11 @@ import mitsuba as mi
 import drjit as dr
 import numpy as np
 
-from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from surface import device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from mitsuba_plugins.registry import default_variant  # noqa: E402
 
-mi.set_variant("llvm_ad_rgb")
+VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
+mi.set_variant(VARIANT)
 from mitsuba_plugins import output, stats, tracking  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -235,7 +237,7 @@ def markdown(result: dict) -> str:
     cfg = result["config"]
     lines = [
         "# volpath_delta vs Mitsuba's volpath", "",
-        f"Measured {result['date']} on {result['cpu']} (llvm_ad_rgb, Mitsuba {mi.__version__}) by "
+        f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
         f"`python3 benchmarks/volpath_delta.py` (res {cfg['res']}, volpath {cfg['spp']} spp, "
         f"{cfg['runs']} alternating runs, median time; reference: volpath_delta "
         f"{cfg['ref_spp']} spp; max_depth {MAX_DEPTH}).", "",
@@ -294,9 +296,11 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--ref-spp", type=int, default=8192)
     ap.add_argument("--ratios", default="1,3,10,30,100")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "volpath_delta"))
+    suffix = "" if VARIANT == "llvm_ad_rgb" else f"_{VARIANT}"
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / f"volpath_delta{suffix}"))
     args = ap.parse_args()
-    result = {"date": datetime.date.today().isoformat(), "cpu": cpu_model(),
+    result = {"date": datetime.date.today().isoformat(), "cpu": device_model(VARIANT),
+              "variant": VARIANT,
               "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
                          "ref_spp": args.ref_spp},
               "efficiency": {}, "estimators_in_integrator": {}}

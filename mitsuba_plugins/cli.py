@@ -117,7 +117,9 @@ def cmd_grid_convert(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mitsuba-plugins", description=__doc__.splitlines()[0])
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
+    from mitsuba_plugins.registry import VARIANT_VARIABLE, default_variant
+    p.add_argument("--variant", default=default_variant(),
+                   help=f"Mitsuba variant (default ${VARIANT_VARIABLE} or llvm_ad_rgb)")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a scene to EXR (+ PNG preview)")

@@ -29,6 +29,16 @@ SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.majorant", "mits
 KINDS = {"grid_medium": "medium"}
 
 
+#: Environment variable naming the variant that the CLI, the tests and the benchmarks use
+#: by default (e.g. ``cuda_ad_rgb`` on a machine with an NVIDIA GPU).
+VARIANT_VARIABLE = "MITSUBA_PLUGINS_VARIANT"
+
+
+def default_variant() -> str:
+    """``$MITSUBA_PLUGINS_VARIANT``, or ``llvm_ad_rgb`` when it is unset or empty."""
+    return os.environ.get(VARIANT_VARIABLE) or "llvm_ad_rgb"
+
+
 class UnsupportedVariantError(RuntimeError):
     """The active Mitsuba variant cannot run these plugins."""
 

@@ -2,8 +2,18 @@
 
 An :class:`Estimate` is the mean of K independent renders (different seeds) with its
 per-pixel standard error, so that two estimators can be compared with both of their
-variances (VALIDATION.md): a per-pixel Welch z-test with Sidak correction, the same test
+variances (VALIDATION.md): a per-pixel Welch test with Sidak correction, the same test
 on block means, and a z-test on the image mean.
+
+Deviation from VALIDATION.md's per-pixel *z*-test: the Welch statistic is compared with
+Student's t at its Welch-Satterthwaite degrees of freedom (per pixel channel), not with the
+normal distribution. Standard errors come from 8-16 passes (about 11 degrees of freedom),
+and against the normal threshold (|z| = 4.65 at 3072 values) a value fails by chance with
+probability ~1e-3 instead of ~3e-6: equal estimators failed 0 to 0.16% of pixel channels
+of the 0.25% allowed (six seed pairs of volpath_raymarch against volpath on
+smoke_heterogeneous, llvm_ad_rgb) and 0.26% once on cuda_ad_rgb. With the t threshold
+(|t| > 8.3 at 11 df) the same seven llvm comparisons failed 0%; a 2% bias still fails
+(tests/test_stats.py), through the block and image-mean tests.
 """
 from __future__ import annotations
 
@@ -110,6 +120,22 @@ def welch_z(a: Estimate, b: Estimate, se_floor: float = SE_FLOOR) -> np.ndarray:
     return (a.mean - b.mean) / se
 
 
+def welch_df(a: Estimate, b: Estimate, se_floor: float = SE_FLOOR) -> np.ndarray:
+    """Welch-Satterthwaite degrees of freedom of :func:`welch_z`, per pixel channel
+    (each standard error estimated from its estimate's passes)."""
+    va, vb = np.maximum(a.se, se_floor) ** 2, np.maximum(b.se, se_floor) ** 2
+    return (va + vb) ** 2 / (va ** 2 / max(a.passes - 1, 1) + vb ** 2 / max(b.passes - 1, 1))
+
+
+def welch_failures(z: np.ndarray, df: np.ndarray, alpha: float) -> tuple:
+    """Which values of ``z`` fail the two-sided Welch t-test at family-wise level ``alpha``
+    (Sidak over all values), and the critical |t| at the median ``df`` (for reports)."""
+    from scipy import stats as sps
+    alpha_1 = -math.expm1(math.log1p(-alpha) / max(z.size, 1))
+    fails = 2 * sps.t.sf(np.abs(z), df) < alpha_1
+    return fails, float(sps.t.isf(alpha_1 / 2, float(np.median(df))))
+
+
 def _block_view(x: np.ndarray, block: int) -> np.ndarray:
     h, w = x.shape[0] // block * block, x.shape[1] // block * block
     x = x[:h, :w]
@@ -142,9 +168,10 @@ class Comparison:
                 and bool(np.all(np.abs(self.mean_z) <= self.mean_threshold)))
 
     def summary(self) -> str:
-        return (f"pixels failing |z|>{self.pixel_threshold:.2f}: {100 * self.pixel_fail_fraction:.3f}% "
+        return (f"pixels failing the Welch t-test (|t|>{self.pixel_threshold:.2f} at the median "
+                f"df): {100 * self.pixel_fail_fraction:.3f}% "
                 f"(max {100 * self.max_pixel_fail_fraction:.2f}%); blocks failing "
-                f"|z|>{self.block_threshold:.2f}: {self.block_failures}; image-mean z per channel: "
+                f"(|t|>{self.block_threshold:.2f}): {self.block_failures}; image-mean z per channel: "
                 f"{np.array2string(self.mean_z, precision=2)} (max {self.mean_threshold})")
 
 
@@ -152,21 +179,22 @@ def compare(a: Estimate, b: Estimate, alpha: float = 0.01, max_pixel_fail_fracti
             block: int = 8, mean_threshold: float = 4.5, se_floor: float = SE_FLOOR) -> Comparison:
     """Is ``a`` a sample of the same expectation as ``b``? (VALIDATION.md, three checks)
 
-    1. per-pixel-channel Welch z-test, Sidak-corrected at ``alpha`` over all pixel
-       channels; at most ``max_pixel_fail_fraction`` may fail (Mitsuba's 0.25%);
+    1. per-pixel-channel Welch test (t at Welch-Satterthwaite df, see the module
+       docstring), Sidak-corrected at ``alpha`` over all pixel channels; at most
+       ``max_pixel_fail_fraction`` may fail (Mitsuba's 0.25%);
     2. the same test on ``block x block`` block means: no block may fail;
     3. z of the whole-image mean per channel: |z| <= ``mean_threshold``.
     """
     z = welch_z(a, b, se_floor)
-    z_crit = sidak_z(alpha, z.size)
+    fails, z_crit = welch_failures(z, welch_df(a, b, se_floor), alpha)
     ab, bb = block_estimate(a, block), block_estimate(b, block)
     zb = welch_z(ab, bb, se_floor / block)
-    zb_crit = sidak_z(alpha, zb.size)
+    block_fails, zb_crit = welch_failures(zb, welch_df(ab, bb, se_floor / block), alpha)
     n = a.mean.shape[0] * a.mean.shape[1]
     diff = (a.mean - b.mean).reshape(n, -1).mean(axis=0)
     se_mean = np.sqrt(((a.se ** 2 + b.se ** 2).reshape(n, -1)).sum(axis=0)) / n
     mean_z = diff / np.maximum(se_mean, 1e-12)
-    return Comparison(float(np.mean(np.abs(z) > z_crit)), z_crit, int(np.sum(np.abs(zb) > zb_crit)),
+    return Comparison(float(np.mean(fails)), z_crit, int(np.sum(block_fails)),
                       zb_crit, mean_z, mean_threshold, max_pixel_fail_fraction, z)
 
 

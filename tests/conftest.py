@@ -1,13 +1,17 @@
-"""Test configuration: a working LLVM is chosen (mitsuba_plugins first), the llvm_ad_rgb
-variant is active, and every plugin is registered. ``--jit-debug`` turns on Dr.Jit's
-debug mode (out-of-bounds gathers become errors)."""
+"""Test configuration: a working LLVM is chosen (mitsuba_plugins first), the test variant
+(``$MITSUBA_PLUGINS_VARIANT``, default llvm_ad_rgb; cuda_ad_rgb on a GPU) is active, and
+every plugin is registered. ``--jit-debug`` turns on Dr.Jit's debug mode (out-of-bounds
+gathers become errors). Tests that are about the LLVM backend itself carry
+``@pytest.mark.llvm_only`` and are skipped, with that reason, in a CUDA variant."""
 import mitsuba_plugins  # noqa: F401  -- must precede drjit: picks libLLVM
 
 import drjit as dr
 import mitsuba as mi
 import pytest
 
-VARIANT = "llvm_ad_rgb"
+from mitsuba_plugins.registry import default_variant  # noqa: E402
+
+VARIANT = default_variant()
 
 
 def pytest_addoption(parser):
@@ -17,13 +21,23 @@ def pytest_addoption(parser):
 
 def pytest_configure(config):
     mi.set_variant(VARIANT)
+    config.addinivalue_line("markers", "llvm_only: tests Dr.Jit's LLVM backend itself")
+
+
+def pytest_collection_modifyitems(config, items):
+    if VARIANT.startswith("llvm_"):
+        return
+    skip = pytest.mark.skip(reason=f"about the LLVM backend; the test variant is {VARIANT}")
+    for item in items:
+        if "llvm_only" in item.keywords:
+            item.add_marker(skip)
     if config.getoption("--jit-debug"):
         dr.set_flag(dr.JitFlag.Debug, True)
 
 
 @pytest.fixture(autouse=True)
 def variant():
-    """Every test starts in llvm_ad_rgb with the plugins registered and a clean JIT."""
+    """Every test starts in the test variant with the plugins registered and a clean JIT."""
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     yield VARIANT

@@ -68,6 +68,7 @@ def test_already_loaded_llvm15_is_refused():
     _llvm.check_loaded_llvm((19, 1, 7))
 
 
+@pytest.mark.llvm_only
 def test_this_process_uses_a_working_llvm():
     import drjit as dr
     assert dr.detail.llvm_version()[0] >= _llvm.MIN_LLVM_MAJOR

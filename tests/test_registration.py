@@ -5,6 +5,7 @@ import pytest
 
 import mitsuba_plugins
 from helpers import load
+from conftest import VARIANT
 
 
 def test_plugins_registered_in_active_variant():
@@ -25,12 +26,13 @@ def test_switch_to_scalar_gives_clear_error():
 
 
 def test_switch_variant_and_render():
-    mi.set_variant("llvm_ad_mono")
+    mono = VARIANT.replace("_rgb", "_mono")
+    mi.set_variant(mono)
     for name in ("direct_mis", "path_rr"):
         img = np.array(mi.render(load("furnace_env", integrator=name, res=8), spp=16))
         assert img.shape == (8, 8, 1) and np.all(np.isfinite(img)) and abs(img.mean() - 0.8) < 0.05
-    with pytest.raises(RuntimeError, match="grid_medium: variant 'llvm_ad_mono' is not supported"):
+    with pytest.raises(RuntimeError, match=f"grid_medium: variant '{mono}' is not supported"):
         mi.load_dict({"type": "grid_medium"})
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     img = np.array(mi.render(load("furnace_env", integrator="path_rr", res=8), spp=16))
     assert img.shape == (8, 8, 3)

@@ -28,6 +28,24 @@ def test_same_expectation_passes_and_2pct_bias_fails():
     assert not result.passed and np.all(result.mean_z < -4.5)
 
 
+def test_pixel_test_is_calibrated_for_few_passes():
+    """Equal expectations, 8 passes against 16 (about 11 Welch-Satterthwaite df, as in the
+    integrator tests), 64x64x3 values, 20 seeds: the Welch t threshold fails a value by
+    chance at the Sidak rate (1% family-wise, so almost never), while the normal threshold
+    |z| > 4.8 failed 1.2e-4 of them here (Gaussian noise; render noise has heavier tails,
+    and seeds of one render comparison failed up to 0.26%, see mitsuba_plugins.stats)."""
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.2, 1.0, (64, 64, 3))
+    t_failing, z_failing = [], []
+    for _ in range(20):
+        a, b = synthetic(truth, 8, 0.05, rng), synthetic(truth, 16, 0.05, rng)
+        result = stats.compare(a, b)
+        t_failing.append(result.pixel_fail_fraction)
+        z_failing.append(np.mean(np.abs(result.z) > stats.sidak_z(0.01, result.z.size)))
+    assert np.mean(t_failing) < 1e-5, t_failing
+    assert np.mean(z_failing) > 5e-5, z_failing      # what the t threshold corrects
+
+
 def test_t_test():
     rng = np.random.default_rng(2)
     x = rng.normal(1.0, 0.1, 1000)
