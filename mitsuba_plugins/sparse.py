@@ -1,0 +1,94 @@
+"""Lookups in sparse brick storage (:mod:`mitsuba_plugins.bricks`) on the device.
+
+Same convention as a clamped ``mi.Texture3f`` over the grid's unit cube: voxel ``i`` of
+an axis of ``N`` voxels has its centre at ``(i + 1/2) / N``; trilinear lookups blend the
+two voxels around ``x N - 1/2`` (clamped to ``[0, N - 1]``), nearest lookups read voxel
+``floor(x N)`` (clamped). One gather reads the brick's pool slot from the indirection
+grid; the voxels come from that one block (the apron holds the high-side neighbours), so
+a trilinear lookup costs 1 + 8 gathers whatever the brick.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_plugins.bricks import BRICK, SIDE
+
+#: pool elements moved to the device per scatter while loading
+UPLOAD_CHUNK = 1 << 22
+
+
+class SparseGrid:
+    """Indirection grid + brick pool of a ``(Z, Y, X, C)`` grid, C in (1, 3)."""
+
+    def __init__(self, shape, index: np.ndarray, chunks: list, stored: int):
+        self.shape = tuple(int(s) for s in shape)
+        self.channels = self.shape[3]
+        self.counts = tuple(int(n) for n in index.shape)          # (Bz, By, Bx)
+        self.stored = int(stored)
+        self.index = mi.UInt32(index.ravel())
+        block = SIDE ** 3 * self.channels
+        self.pool = dr.zeros(mi.Float, self.stored * block)
+        start = 0
+        while chunks:                       # upload and free chunk by chunk
+            values = chunks.pop(0).reshape(-1)
+            for s in range(0, values.size, UPLOAD_CHUNK):
+                part = values[s:s + UPLOAD_CHUNK]
+                dr.scatter(self.pool, mi.Float(part),
+                           dr.arange(mi.UInt32, start + s, start + s + part.size))
+                dr.eval(self.pool)
+            start += values.size
+            del values
+        if start != self.stored * block:
+            raise ValueError(f"SparseGrid: pool has {start} values, expected "
+                             f"{self.stored * block}")
+        z, y, x = self.shape[:3]
+        self._size_i = (x, y, z)
+        dr.make_opaque(self.index, self.pool)
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes of the indirection grid and the pool."""
+        return 4 * (int(np.prod(self.counts)) + self.stored * SIDE ** 3 * self.channels)
+
+    def _slot_base(self, voxel: mi.Vector3i, active) -> mi.UInt32:
+        """Voxel index in the pool (slot x SIDE^3 + offset in the block); times C for
+        the element (``dr.gather`` of a ``Color3f`` scales by 3 itself)."""
+        bx, by = self.counts[2], self.counts[1]
+        brick = voxel >> 3 if BRICK == 8 else voxel // BRICK
+        local = voxel - brick * BRICK
+        entry = mi.UInt32((brick.z * by + brick.y) * bx + brick.x)
+        slot = dr.gather(mi.UInt32, self.index, entry, active)
+        offset = mi.UInt32((local.z * SIDE + local.y) * SIDE + local.x)
+        return slot * (SIDE ** 3) + offset
+
+    def _read(self, element: mi.UInt32, active):
+        if self.channels == 1:
+            return dr.gather(mi.Float, self.pool, element, active)
+        return dr.gather(mi.Color3f, self.pool, element, active)
+
+    def eval(self, p: mi.Point3f, trilinear: bool, active=True):
+        """Value at local point ``p`` (unit cube): ``mi.Float`` or ``mi.Color3f``."""
+        size = mi.Vector3f(*self._size_i)
+        top = size - 1.0
+        if not trilinear:
+            voxel = mi.Vector3i(dr.clip(dr.floor(p * size), 0.0, top))
+            return self._read(self._slot_base(voxel, active), active)
+        q = dr.clip(p * size - 0.5, 0.0, top)
+        base_f = dr.floor(q)
+        f = q - base_f
+        base = self._slot_base(mi.Vector3i(base_f), active)
+        g = 1.0 - f
+        result = None
+        for dz in (0, 1):
+            wz = f.z if dz else g.z
+            for dy in (0, 1):
+                wy = f.y if dy else g.y
+                for dx in (0, 1):
+                    wx = f.x if dx else g.x
+                    step = (dz * SIDE + dy) * SIDE + dx
+                    value = self._read(base + step, active)
+                    term = value * (wz * wy * wx)
+                    result = term if result is None else result + term
+        return result
