@@ -260,9 +260,18 @@ class GridMedium(mi.Medium):
         auto`` falls back to dense storage when the bricks save less than half."""
         from mitsuba_plugins.sparse import SparseGrid
         builder = bricks.BrickBuilder(header.shape)
-        for z0, slab in gridio.iter_slabs(header):
-            gridio.check_values(header.path, "density", slab)
-            builder.add(z0, slab)
+        if header.vdb_grid is not None:
+            # the OpenVDB worker cuts the bricks: only stored ones cross the pipe (a
+            # non-finite or negative value is non-zero, so its brick is checked here)
+            from mitsuba_plugins.vdb import iter_vdb_bricks
+            for row, cols, blocks in iter_vdb_bricks(header):
+                gridio.check_values(header.path, "density", blocks)
+                builder.add_row(row, cols, blocks)
+        else:
+            for z0, slab in gridio.iter_slabs(header):
+                gridio.check_values(header.path, "density", slab)
+                builder.add(z0, slab)
+        builder.finish_check()
         index = builder.index
         maxima, minima = np.concatenate(builder.maxima), np.concatenate(builder.minima)
         sparse_bytes = 4 * (index.size + builder.stored * bricks.SIDE ** 3 * header.channels)

@@ -3,14 +3,19 @@ OpenVDB's module (Debian's ``python3-openvdb``, built for Debian's own Python an
 1.x), never inside the package's environment. It imports only pyopenvdb, numpy and the
 standard library.
 
-``info FILE``: one JSON line describing every grid of FILE (name, value type, class,
-background, active voxels, active index box, value range, index-to-world matrix, whether
-the transform is linear).
+``info FILE [norange]``: one JSON line describing every grid of FILE (name, value type,
+class, background, active voxels, active index box, value range unless ``norange``,
+index-to-world matrix, whether the transform is linear).
 
 ``read FILE GRID I0 J0 K0 NX NY NZ SLAB``: the values of GRID in the index box starting
 at (I0, J0, K0) of NX x NY x NZ voxels (background outside the active voxels and tiles),
 as raw little-endian float32 on stdout, SLAB k-slices at a time, each slab C-ordered
 ``(k, j, i, channel)``.
+
+``bricks FILE GRID I0 J0 K0 NX NY NZ``: the same box cut into the stored bricks of
+:mod:`mitsuba_plugins.bricks` here, so that only they cross the pipe: per brick row
+(8 k-slices and the apron slice) the little-endian int32 pair (row, n), n int32 ``by``,
+n int32 ``bx``, then n float32 blocks ``(SIDE, SIDE, SIDE, channel)``.
 """
 import json
 import sys
@@ -40,13 +45,16 @@ def _matrix(transform):
     return rows + [[0.0, 0.0, 0.0, 1.0]]
 
 
-def info(path):
+def info(path, value_range=True):
     grids = []
     for grid in _open(path):
         lo, hi = grid.evalActiveVoxelBoundingBox()
         count = grid.activeVoxelCount()
         background = grid.background
-        vmin, vmax = grid.evalMinMax() if count else (background, background)
+        if not value_range:                 # evalMinMax reads every value (3 s at 3e8)
+            vmin = vmax = None
+        else:
+            vmin, vmax = grid.evalMinMax() if count else (background, background)
         transform = grid.transform
         grids.append({
             "name": grid.name, "type": grid.valueTypeName,
@@ -77,11 +85,45 @@ def read(path, name, i0, j0, k0, nx, ny, nz, slab):
     out.flush()
 
 
+def _bricks_module():
+    """mitsuba_plugins/bricks.py, loaded by path (the package itself needs Dr.Jit)."""
+    import importlib.util
+    import os
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bricks.py")
+    spec = importlib.util.spec_from_file_location("_mitsuba_plugins_bricks", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def bricks(path, name, i0, j0, k0, nx, ny, nz):
+    import struct
+    import numpy as np
+    b = _bricks_module()
+    grid = _open(path, name)
+    channels = 3 if grid.valueTypeName.startswith("vec3") else 1
+    out = sys.stdout.buffer
+    for row in range(-(-nz // b.BRICK)):
+        first = row * b.BRICK
+        k = min(first + b.SIDE, nz) - first
+        shape = (nx, ny, k, channels) if channels > 1 else (nx, ny, k)
+        block = np.zeros(shape, np.float32)
+        grid.copyToArray(block, ijk=(i0, j0, k0 + first))
+        layers = np.ascontiguousarray(block.reshape(nx, ny, k, channels).transpose(2, 1, 0, 3))
+        (by, bx), blocks = b.cut_row(layers, (ny, nx, channels))
+        out.write(struct.pack("<ii", row, by.size))
+        out.write(by.astype("<i4").tobytes() + bx.astype("<i4").tobytes())
+        out.write(np.ascontiguousarray(blocks, dtype="<f4").tobytes())
+    out.flush()
+
+
 if __name__ == "__main__":
     command, *args = sys.argv[1:]
     if command == "info":
-        info(args[0])
+        info(args[0], value_range=args[1:] != ["norange"])
     elif command == "read":
         read(args[0], args[1], *map(int, args[2:]))
+    elif command == "bricks":
+        bricks(args[0], args[1], *map(int, args[2:]))
     else:
         _fail(f"unknown command {command}")

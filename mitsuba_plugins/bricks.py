@@ -79,16 +79,28 @@ class BrickBuilder:
         self.minima.append(blocks.min(axis=(1, 2, 3)))
         self.stored += n
 
+    def add_row(self, row: int, cols, blocks: np.ndarray) -> None:
+        """Record brick row ``row`` cut elsewhere (in order; see :meth:`add_blocks`)."""
+        if row != self._row or self._layers:
+            raise ValueError(f"BrickBuilder: brick row {row}, expected {self._row}")
+        self.add_blocks(row, cols, blocks)
+        self._row += 1
+        self._next_z = min(self._row * BRICK, self.shape[0])
+
     def _emit_row(self, layers: list) -> None:
         _, y, x, c = self.shape
         cols, blocks = cut_row(np.stack(layers), (y, x, c))
         self.add_blocks(self._row, cols, blocks)
 
     # -- results -------------------------------------------------------------------
-    def finish(self):
-        """``(index, pool, maxima, minima)``: pool ``(stored, SIDE, SIDE, SIDE, C)``."""
+    def finish_check(self) -> None:
+        """Raise unless every z-slice was fed."""
         if self._row < self.counts[0]:
             raise ValueError(f"BrickBuilder: {self._next_z} of {self.shape[0]} z-slices fed")
+
+    def finish(self):
+        """``(index, pool, maxima, minima)``: pool ``(stored, SIDE, SIDE, SIDE, C)``."""
+        self.finish_check()
         pool = np.concatenate(self.blocks) if len(self.blocks) > 1 else self.blocks[0]
         self.blocks = []
         return (self.index, pool, np.concatenate(self.maxima), np.concatenate(self.minima))
@@ -111,7 +123,9 @@ def cut_row(layers: np.ndarray, yxc) -> tuple:
     pad = ((0, SIDE - k), (0, by * BRICK + 1 - y), (0, bx * BRICK + 1 - x), (0, 0))
     if any(p[1] for p in pad):
         layers = np.pad(layers, pad, mode="edge")
-    nonzero = np.any(layers != 0, axis=(0, 3))                     # (Y', X')
+    # any non-zero bit over the slices (an OR of the float bits: -0.0 counts, harmlessly)
+    bits = np.bitwise_or.reduce(layers.view(np.uint32), axis=0)    # (Y', X', C)
+    nonzero = bits[..., 0] != 0 if c == 1 else np.any(bits != 0, axis=2)
     s0, s1 = nonzero.strides
     windows = np.lib.stride_tricks.as_strided(
         nonzero, (by, bx, SIDE, SIDE), (BRICK * s0, BRICK * s1, s0, s1), writeable=False)

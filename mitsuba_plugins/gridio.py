@@ -343,10 +343,12 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
     the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0, and the
     memory its (dense) storage takes; for a ``.vdb``, every grid of the file and the
     world bounds from its transform."""
+    from mitsuba_plugins.bricks import SIDE, BrickBuilder
     from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
     header = read_header(path, grid)
     z, y, x, c = header.shape
     builder = MajorantBuilder(header.shape, resolution_for(header.shape, cells))
+    bricks = BrickBuilder(header.shape)
     total, vmin, vmax, nonfinite = 0.0, np.inf, 0.0, 0
     for z0, slab in iter_slabs(header):
         finite = np.isfinite(slab)
@@ -355,6 +357,8 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
         total += float(slab.sum(dtype=np.float64))
         vmin, vmax = min(vmin, float(slab.min())), max(vmax, float(slab.max()))
         builder.add(z0, slab)
+        bricks.add(z0, slab)
+        bricks.blocks = bricks.blocks[:1]        # only the count is needed
     mean = total / header.size
     cells_max = builder.finish()
     lo, hi, _ = world_box(header)
@@ -384,6 +388,8 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
         "majorant_empty_fraction": float(np.mean(cells_max == 0)),
         "majorant_mean_over_max": float(cells_max.mean() / vmax) if vmax > 0 else 0.0,
         "storage_bytes": 4 * header.size,
+        "sparse_bricks": bricks.stored - 1,
+        "sparse_storage_bytes": 4 * (bricks.index.size + bricks.stored * SIDE ** 3 * c),
         **extra,
     }
 
@@ -397,7 +403,11 @@ def format_info(info: dict) -> str:
         ("file", info["file"]),
         ("resolution", f"{res} (X x Y x Z), {info['channels']} channel(s), {info['format']}"),
         ("bounds", f"{fmt(info['bbox_min'])} - {fmt(info['bbox_max'])} ({info['bbox_from']})"),
-        ("storage", f"{info['storage_bytes'] / 2 ** 20:.4g} MiB (dense float32)"),
+        ("storage", f"{info['storage_bytes'] / 2 ** 20:.4g} MiB dense float32; "
+                    f"{info['sparse_storage_bytes'] / 2 ** 20:.4g} MiB sparse "
+                    f"({info['sparse_bricks']} bricks of 8^3 + apron); storage = auto "
+                    f"would choose "
+                    f"{'sparse' if info['sparse_storage_bytes'] <= 0.5 * info['storage_bytes'] else 'dense'}"),
         ("density min/max", f"{info['min']:.6g} / {info['max']:.6g}"),
         ("density mean", f"{info['mean']:.6g}"),
         ("max / mean", f"{info['max_over_mean']:.4g}"),

@@ -74,16 +74,19 @@ def _run(path, *args) -> subprocess.CompletedProcess:
     return proc
 
 
-def vdb_info(path) -> list:
-    """Every grid of ``path``: a list of dicts (see :mod:`mitsuba_plugins._vdb_worker`)."""
-    return json.loads(_run(path, "info", os.fspath(path)).stdout)
+def vdb_info(path, value_range: bool = True) -> list:
+    """Every grid of ``path``: a list of dicts (see :mod:`mitsuba_plugins._vdb_worker`);
+    without ``value_range`` their ``min``/``max`` are None (reading them costs a pass
+    over every value)."""
+    args = ["info", os.fspath(path)] + ([] if value_range else ["norange"])
+    return json.loads(_run(path, *args).stdout)
 
 
 def read_vdb_header(path, grid: str):
     """A :class:`~mitsuba_plugins.gridio.GridHeader` for grid ``grid`` of ``path``: its
     active box grown by :data:`PAD` voxels, refusing what cannot be placed or stored."""
     from mitsuba_plugins.gridio import GridHeader, _check_shape
-    grids = vdb_info(path)
+    grids = vdb_info(path, value_range=False)
     found = [g for g in grids if g["name"] == grid]
     if not found:
         names = ", ".join(repr(g["name"]) for g in grids) or "none"
@@ -134,6 +137,38 @@ def iter_vdb_slabs(header, slab_bytes: int):
                           + (reason.splitlines()[-1] if reason else "stream ended early")
                           + ")")
                 yield z0, np.frombuffer(raw, dtype="<f4").reshape(k, y, x, c)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+
+
+def iter_vdb_bricks(header):
+    """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
+    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker, which never holds
+    more than one row of the box; only stored bricks cross the pipe."""
+    from mitsuba_plugins.bricks import BRICK, SIDE
+    z, y, x, c = header.shape
+    i0, j0, k0 = header.index_min
+    args = ["bricks", header.path, header.vdb_grid, i0, j0, k0, x, y, z]
+    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, args)],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        def read(count: int) -> bytes:
+            raw = proc.stdout.read(count)
+            if len(raw) != count:
+                proc.wait()
+                reason = proc.stderr.read().decode(errors="replace").strip()
+                _fail(header.path, "reading grid values failed ("
+                      + (reason.splitlines()[-1] if reason else "stream ended early") + ")")
+            return raw
+        try:
+            for expected in range(-(-z // BRICK)):
+                row, n = np.frombuffer(read(8), dtype="<i4")
+                if row != expected or n < 0:
+                    _fail(header.path, f"reading grid values failed (row {row}, expected "
+                                       f"{expected})")
+                cols = np.frombuffer(read(8 * n), dtype="<i4").reshape(2, n).astype(np.intp)
+                blocks = np.frombuffer(read(4 * n * SIDE ** 3 * c), dtype="<f4")
+                yield int(row), (cols[0], cols[1]), blocks.reshape(n, SIDE, SIDE, SIDE, c)
         finally:
             if proc.poll() is None:
                 proc.kill()
