@@ -37,9 +37,6 @@ SINGULAR_TOLERANCE = 1e-12
 STORAGES = ("dense", "sparse", "auto")
 #: ``storage = auto`` keeps bricks when they take at most this fraction of the dense bytes
 AUTO_SPARSE_FRACTION = 0.5
-#: default majorant cells per axis of a large sparse grid (bounds from the bricks'
-#: extrema, so at most one cell per brick; dense storage keeps DEFAULT_RESOLUTION)
-SPARSE_RESOLUTION = 64
 #: sparse grids up to this many voxels get voxel-exact majorants, as dense ones (built
 #: from a dense copy, at most 64 MiB): at 48^3 the brick bounds (6^3 cells) made
 #: volpath_delta 1.43x slower on scenes/sparse.xml than the dense grid's 16^3
@@ -82,6 +79,12 @@ class GridMedium(mi.Medium):
        - Emitted radiance :math:`L_e` (>= 0), for integrators that support emissive media;
          the emitted power per unit length is :math:`\sigma_a L_e`. Mitsuba's built-in
          integrators ignore it. (Default: none)
+     * - emission_grid
+       - |string|
+       - A grid of the same ``.vdb`` file (float or vec3s, e.g. ``temperature`` or
+         ``flames``, values >= 0) that multiplies ``emission`` (which defaults to 1 when
+         this is given), placed by its own index-to-world transform (then ``to_world``),
+         interpolated as the density, stored in bricks. (Default: none)
      * - interpolation
        - |string|
        - ``trilinear`` or ``nearest`` lookups of the ``filename`` grid. (Default: trilinear)
@@ -105,8 +108,8 @@ class GridMedium(mi.Medium):
      * - majorant_resolution
        - |int|
        - Cells per axis of the majorant grid, in [1, 1024] (capped at the grid's
-         resolution; with sparse storage at its bricks per axis, the bounds being the
-         bricks' extrema). (Default: 16 dense, 64 sparse)
+         resolution; for a sparse grid above 256^3 voxels at its bricks per axis, the
+         bounds then being the bricks' extrema). (Default: 16)
      * - has_spectral_extinction
        - |bool|
        - Tell integrators the extinction differs between channels. (Default: true when it
@@ -140,8 +143,9 @@ class GridMedium(mi.Medium):
 
     ALLOWED = ("filename", "grid", "sigma_t", "scale", "albedo", "emission", "interpolation",
                "to_world", "use_grid_bbox", "majorant_resolution", "has_spectral_extinction",
-               "sample_emitters", "storage")
-    FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox", "grid", "storage")
+               "sample_emitters", "storage", "emission_grid")
+    FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox", "grid", "storage",
+                 "emission_grid")
 
     def __init__(self, props: mi.Properties):
         if not mi.is_rgb:
@@ -159,8 +163,8 @@ class GridMedium(mi.Medium):
                 "number >= 0 that float32 holds (at most 3.4e38)")
         self.albedo = _volume(p, "albedo", 0.75, hi=1.0)
         self.emission = _volume(p, "emission", None) if p.has("emission") else None
+        self.emission_grid = None   # (SparseGrid, to_local) of ``emission_grid``
         self.cells = p.int("majorant_resolution", DEFAULT_RESOLUTION, lo=1, hi=1024)
-        self.cells_given = p.has("majorant_resolution")
         self.filename = None
         self.sparse = None  # SparseGrid when the filename grid is stored in bricks
         self.volume = None  # nested sigma_t volume (no filename)
@@ -173,10 +177,16 @@ class GridMedium(mi.Medium):
             if p.has("to_world"):
                 _check_invertible(p.props["to_world"])
             self.grid_name = p.props["grid"] if p.has("grid") else "density"
-            if p.has("grid") and not self.filename.lower().endswith(".vdb"):
-                raise PluginParameterError(
-                    "grid_medium: parameter 'grid' selects a grid of a .vdb file; "
-                    f"'{self.filename}' is not one")
+            for name in ("grid", "emission_grid"):
+                if p.has(name) and not self.filename.lower().endswith(".vdb"):
+                    raise PluginParameterError(
+                        f"grid_medium: parameter '{name}' selects a grid of a .vdb file; "
+                        f"'{self.filename}' is not one")
+            if p.has("emission_grid"):
+                if self.emission is None:
+                    self.emission = _volume(p, "emission", 1.0)
+                self.emission_grid = _load_emission_grid(self.filename,
+                                                         p.props["emission_grid"], to_world)
             is_vdb = self.filename.lower().endswith(".vdb")
             self.storage = p.choice("storage", "auto" if is_vdb else "dense", STORAGES)
             data, to_local, bbox, builder = self._load(self.filename, to_world,
@@ -220,13 +230,7 @@ class GridMedium(mi.Medium):
         if any check fails."""
         header = gridio.read_header(path, self.grid_name)
         if header.index_to_world is not None:
-            # OpenVDB placement: the file's index -> world transform, then to_world
-            from mitsuba_plugins.vdb import grid_to_world
-            matrix = np.array(to_world.matrix, dtype=np.float64) @ grid_to_world(header)
-            # composed and inverted in double precision; float32 only at the end
-            to_world = mi.ScalarTransform4f(dr.scalar.Matrix4f(matrix.astype(np.float32)),
-                                            dr.scalar.Matrix4f(
-                                                np.linalg.inv(matrix).T.astype(np.float32)))
+            to_world = _vdb_to_world(header, to_world)
         if use_grid_bbox and header.bbox is None:
             raise PluginParameterError(
                 f"grid_medium: parameter 'use_grid_bbox' needs a .vol file (with a bounding "
@@ -292,9 +296,10 @@ class GridMedium(mi.Medium):
         """Cell bounds of sparse storage from the bricks' extrema (gray, weighted by the
         sigma_t multiplier), and the largest value (the global bound before scale)."""
         maxima, minima, index = self.brick_extrema
-        cells = self.cells if self.cells_given else SPARSE_RESOLUTION
-        counts = index.shape
-        rz, ry, rx = (min(cells, c) for c in counts)
+        # Default 16 as for dense storage: on the 1024^3 cloud of
+        # benchmarks/sparse_scale.py, 64 cells per axis made volpath_delta 1.4x slower
+        # (more DDA steps, no fewer collisions), 32 1.15x; at most one cell per brick.
+        rz, ry, rx = (min(self.cells, c) for c in index.shape)
         z, y, x = self.shape[:3]
         ranges = (voxel_ranges(z, rz), voxel_ranges(y, ry), voxel_ranges(x, rx))
         weights = _weights(_floats(self.sigma_t_factor), self.channels)
@@ -441,7 +446,13 @@ class GridMedium(mi.Medium):
         integrator adds :math:`\\sigma_a L_e` per unit length (ALGORITHMS.md section 6)."""
         if self.emission is None:
             return mi.Color3f(0.0)
-        return mi.Color3f(self.emission.eval(mei, active))
+        radiance = mi.Color3f(self.emission.eval(mei, active))
+        if self.emission_grid is not None:
+            grid, to_local = self.emission_grid
+            value = grid.eval(mi.Transform4f(to_local) @ mei.p,
+                              self.interpolation == "trilinear", active)
+            radiance *= mi.Color3f(value) if grid.channels == 1 else value
+        return radiance
 
     def traverse(self, callback):
         flags = mi.ParamFlags.NonDifferentiable
@@ -492,6 +503,30 @@ class GridMedium(mi.Medium):
                 f"  majorant_grid = {rx} x {ry} x {rz} (empty fraction "
                 f"{self.majorant_grid.empty_fraction():.3f}),\n"
                 f"  emission = {self.emission is not None}\n]")
+
+
+def _vdb_to_world(header, to_world: mi.ScalarTransform4f) -> mi.ScalarTransform4f:
+    """Unit cube of a .vdb grid's loaded box -> world (OpenVDB placement): the file's
+    index-to-world transform, then ``to_world``; composed and inverted in double
+    precision, float32 only at the end."""
+    from mitsuba_plugins.vdb import grid_to_world
+    matrix = np.array(to_world.matrix, dtype=np.float64) @ grid_to_world(header)
+    return mi.ScalarTransform4f(dr.scalar.Matrix4f(matrix.astype(np.float32)),
+                                dr.scalar.Matrix4f(np.linalg.inv(matrix).T.astype(np.float32)))
+
+
+def _load_emission_grid(path: str, name: str, to_world: mi.ScalarTransform4f):
+    """``(SparseGrid, world -> local)`` of grid ``name`` of a .vdb (values >= 0)."""
+    from mitsuba_plugins.sparse import SparseGrid
+    from mitsuba_plugins.vdb import iter_vdb_bricks
+    header = gridio.read_header(path, name)
+    builder = bricks.BrickBuilder(header.shape)
+    for row, cols, blocks in iter_vdb_bricks(header):
+        gridio.check_values(path, f"emission_grid {name!r}", blocks)
+        builder.add_row(row, cols, blocks)
+    builder.finish_check()
+    grid = SparseGrid(header.shape, builder.index, builder.pool_chunks(), builder.stored)
+    return grid, _vdb_to_world(header, to_world).inverse()
 
 
 # -- parameter helpers ----------------------------------------------------------------

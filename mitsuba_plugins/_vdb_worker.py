@@ -12,6 +12,12 @@ at (I0, J0, K0) of NX x NY x NZ voxels (background outside the active voxels and
 as raw little-endian float32 on stdout, SLAB k-slices at a time, each slab C-ordered
 ``(k, j, i, channel)``.
 
+``write FILE GRID NX NY NZ C M00 .. M23``: a new file with one float (C = 1) or vec3s
+(C = 3) grid GRID, index-to-world matrix rows M (3 x 4, column vectors), voxel (i, j, k)
+of the box at index (i, j, k) plus the offset in the matrix' caller; values arrive on
+stdin as raw little-endian float32 ``(k, j, i, channel)`` slices, one at a time; zeros
+stay inactive background.
+
 ``bricks FILE GRID I0 J0 K0 NX NY NZ``: the same box cut into the stored bricks of
 :mod:`mitsuba_plugins.bricks` here, so that only they cross the pipe: per brick row
 (8 k-slices and the apron slice) the little-endian int32 pair (row, n), n int32 ``by``,
@@ -85,6 +91,27 @@ def read(path, name, i0, j0, k0, nx, ny, nz, slab):
     out.flush()
 
 
+def write(path, name, nx, ny, nz, channels, *matrix):
+    import numpy as np
+    import pyopenvdb as vdb
+    grid = vdb.Vec3SGrid() if channels == 3 else vdb.FloatGrid()
+    grid.name = name
+    rows = [list(matrix[4 * r:4 * r + 4]) for r in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
+    # OpenVDB's matrices act on row vectors: pass the transpose
+    grid.transform = vdb.createLinearTransform([list(c) for c in zip(*rows)])
+    inp = sys.stdin.buffer
+    count = nx * ny * channels
+    for k in range(nz):
+        raw = inp.read(4 * count)
+        if len(raw) != 4 * count:
+            _fail(f"stream ended at slice {k} of {nz}")
+        layer = np.frombuffer(raw, dtype="<f4").reshape(ny, nx, channels)
+        block = layer.transpose(1, 0, 2)[:, :, None, :]
+        block = np.ascontiguousarray(block if channels == 3 else block[..., 0])
+        grid.copyFromArray(block, ijk=(0, 0, k), tolerance=0.0)
+    vdb.write(path, grids=[grid])
+
+
 def _bricks_module():
     """mitsuba_plugins/bricks.py, loaded by path (the package itself needs Dr.Jit)."""
     import importlib.util
@@ -123,6 +150,8 @@ if __name__ == "__main__":
         info(args[0], value_range=args[1:] != ["norange"])
     elif command == "read":
         read(args[0], args[1], *map(int, args[2:]))
+    elif command == "write":
+        write(args[0], args[1], *map(int, args[2:6]), *map(float, args[6:]))
     elif command == "bricks":
         bricks(args[0], args[1], *map(int, args[2:]))
     else:

@@ -167,11 +167,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="majorant cells per axis, in [1, 1024] (default 16)")
     gi.add_argument("--json", action="store_true", help="print JSON")
     gi.set_defaults(func=cmd_grid_info)
-    gc = gsub.add_parser("convert", help="convert a grid (.vol, .npy, .vdb) to .vol or .npy "
-                                         "(dense; its size is printed first)")
+    gc = gsub.add_parser("convert", help="convert a grid (.vol, .npy, .vdb) to .vol, .npy "
+                                         "(dense; the size is printed first) or .vdb")
     gc.add_argument("source", help=".vol, .npy or .vdb grid file")
-    gc.add_argument("target", help=".vol (keeps the world box) or .npy")
-    gc.add_argument("--grid", default="density", help="which grid of a .vdb (default density)")
+    gc.add_argument("target", help=".vol (keeps the world box), .npy, or .vdb (keeps the "
+                                   "placement; zeros stay inactive)")
+    gc.add_argument("--grid", default="density",
+                    help="which grid of a .vdb to read, and the name of the grid written "
+                         "to a .vdb (default density)")
     gc.set_defaults(func=cmd_grid_convert)
     return p
 

@@ -309,18 +309,27 @@ def world_box(header: GridHeader) -> tuple:
 
 
 def convert(source, target, grid: str = "density", report=print) -> dict:
-    """Write grid ``source`` (``.vol``, ``.npy`` or ``.vdb``) as ``target`` (``.vol`` or
-    ``.npy``), slab by slab (one slab in memory), validating every value, to a temporary
-    name renamed when complete. Both targets are dense: ``report`` is told the size
-    before anything is written. A ``.vol`` keeps the world box (a ``.vdb``'s rotation
-    cannot be kept: ``report`` says so); ``.npy`` keeps the values only."""
+    """Write grid ``source`` (``.vol``, ``.npy`` or ``.vdb``) as ``target`` (``.vol``,
+    ``.npy`` or ``.vdb``), slab by slab (one slab in memory), validating every value, to
+    a temporary name renamed when complete. ``.vol`` and ``.npy`` are dense: ``report``
+    is told the size before anything is written. A ``.vol`` keeps the world box (a
+    ``.vdb``'s rotation cannot be kept: ``report`` says so); ``.npy`` keeps the values
+    only; a ``.vdb`` keeps the placement (a ``.vdb``'s own transform, else voxel centres
+    spread over the world box) and stores only the non-zero voxels, as grid ``grid``."""
     from mitsuba_plugins.output import atomic_path, check_targets
-    check_targets([target], extensions=(".vol", ".npy"), option="OUT")
+    check_targets([target], extensions=(".vol", ".npy", ".vdb"), option="OUT")
     header = read_header(source, grid)
     ext = os.path.splitext(os.fspath(target))[1].lower()
     z, y, x, c = header.shape
     size = 4 * header.size
     lo, hi, rotated = world_box(header)
+    if ext == ".vdb":
+        from mitsuba_plugins.vdb import write_vdb
+        report(f"{target}: grid {grid!r}, {x} x {y} x {z} x {c} voxels, zeros left inactive")
+        with atomic_path(target) as tmp:
+            write_vdb(tmp, grid, header.shape, _index_to_world(header, lo, hi),
+                      ((z0, _checked(header, slab)) for z0, slab in iter_slabs(header)))
+        return {"shape": header.shape, "bytes": None, "bbox": (lo, hi), "rotated": False}
     report(f"{target}: {x} x {y} x {z} x {c} float32 values, {size / 2 ** 20:.4g} MiB (dense)")
     if rotated and ext == ".vol":
         report(f"{target}: note: the file's transform rotates or shears the grid; a .vol "
@@ -336,6 +345,25 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
             check_values(header.path, "data", slab)
             f.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
     return {"shape": header.shape, "bytes": size, "bbox": (lo, hi), "rotated": rotated}
+
+
+def _checked(header: GridHeader, slab: np.ndarray) -> np.ndarray:
+    check_values(header.path, "data", slab)
+    return slab
+
+
+def _index_to_world(header: GridHeader, lo, hi) -> np.ndarray:
+    """4x4 map from index (i, j, k) of the loaded box (voxel centres) to world."""
+    if header.index_to_world is not None:
+        matrix = np.array(header.index_to_world, dtype=np.float64)
+        offset = np.eye(4)
+        offset[:3, 3] = header.index_min
+        return matrix @ offset
+    z, y, x, _ = header.shape
+    h = (np.array(hi, np.float64) - lo) / (x, y, z)
+    matrix = np.diag([*h, 1.0])
+    matrix[:3, 3] = np.array(lo, np.float64) + 0.5 * h
+    return matrix
 
 
 def grid_info(path, cells: int = 16, grid: str = "density") -> dict:

@@ -174,6 +174,27 @@ def iter_vdb_bricks(header):
                 proc.kill()
 
 
+def write_vdb(path, name: str, shape, index_to_world: np.ndarray, slabs) -> None:
+    """Write a one-grid ``.vdb`` at ``path`` through the worker: ``slabs`` yields
+    ``(z0, (k, Y, X, C) float32)`` in order; voxel (i, j, k) sits at ``index_to_world``
+    (4x4, column vectors) applied to (i, j, k)."""
+    z, y, x, c = shape
+    rows = np.asarray(index_to_world, dtype=np.float64)[:3].ravel().tolist()
+    args = ["write", os.fspath(path), name, x, y, z, c, *rows]
+    with subprocess.Popen([openvdb_python(path), str(WORKER), *map(str, args)],
+                          stdin=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        try:
+            for _, slab in slabs:
+                proc.stdin.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
+            proc.stdin.close()
+        except BrokenPipeError:
+            pass
+        if proc.wait() != 0:
+            reason = proc.stderr.read().decode(errors="replace").strip()
+            _fail(path, "writing failed (" + (reason.splitlines()[-1] if reason else
+                                              "no message") + ")")
+
+
 def grid_to_world(header) -> np.ndarray:
     """4x4 map from the loaded box's unit cube (voxel ``x``'s centre at
     ``(x + 1/2) / N``) to world space through the file's index-to-world transform."""

@@ -125,9 +125,10 @@ def test_brick_majorants_bound_every_lookup(tmp_path, monkeypatch, interpolation
     gridio.write_vol(tmp_path / "shell.vol", data)
     medium = mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "shell.vol"),
                            "storage": "sparse", "scale": 3.0, "interpolation": interpolation,
+                           "majorant_resolution": 64,
                            "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)})
     grid = medium.majorant_grid
-    assert grid.resolution == (8, 8, 8)      # SPARSE_RESOLUTION capped at 8 bricks per axis
+    assert grid.resolution == (8, 8, 8)      # capped at 8 bricks per axis
     rng = np.random.default_rng(5)
     o = rng.uniform(-2.5, 2.5, (4096, 3)).astype(np.float32)
     d = rng.normal(size=(4096, 3))

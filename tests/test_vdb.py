@@ -261,3 +261,70 @@ def test_convert_vol_to_npy_and_failures_leave_the_target(tmp_path, capsys):
     assert cli.main(["grid", "convert", str(tmp_path / "g.vol"), str(tmp_path / "g.exr")]) == 2
     assert "extension '.exr' is not supported; allowed: .vol, .npy" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npy", "g.npy", "g.vol", "keep.vol"]
+
+
+# -- emission_grid --------------------------------------------------------------------------
+def radiance_at(medium, points) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    mei = dr.zeros(mi.MediumInteraction3f, len(points))
+    mei.p = mi.Point3f(*(points.T.astype(np.float32)))
+    return np.array(medium.get_radiance(mei))
+
+
+def test_emission_grid_multiplies_emission_where_its_transform_says(tmp_path):
+    """A 'temperature' grid with its own rotated transform and box beside the density:
+    radiance = emission x temperature at the temperature voxels' world centres, 0 at a
+    neighbour's centre, and emission defaults to 1."""
+    out = make_vdb(tmp_path / "fire.vdb", TRANSFORMS["rotated_scaled_translated"], """
+        d = vdb.FloatGrid(); d.name = "density"
+        d.transform = vdb.createLinearTransform(0.1)
+        d.fill((0, 0, 0), (9, 9, 9), 1.0); grids.append(d)
+        g = vdb.FloatGrid(); g.name = "temperature"; g.transform = t
+        a = g.getAccessor(); a.setValueOn((4, -1, 7), 3.0); a.setValueOn((-6, 2, 0), 0.5)
+        grids.append(g)
+        out["hot"] = [t.indexToWorld((4, -1, 7)), t.indexToWorld((-6, 2, 0))]
+        out["cold"] = [t.indexToWorld((4, 1, 7))]
+    """)
+    hot, cold = np.array(out["hot"]), np.array(out["cold"])
+    medium = load_medium(tmp_path / "fire.vdb", emission_grid="temperature",
+                         emission=[2.0, 1.0, 0.5])
+    assert medium.has_emission
+    np.testing.assert_allclose(radiance_at(medium, hot).T, [[6.0, 3.0, 1.5], [1.0, 0.5, 0.25]],
+                               rtol=1e-5)
+    np.testing.assert_allclose(radiance_at(medium, cold), 0.0, atol=1e-6)
+    unit = load_medium(tmp_path / "fire.vdb", emission_grid="temperature")
+    np.testing.assert_allclose(radiance_at(unit, hot[:1]).ravel(), [3.0] * 3, rtol=1e-5)
+    with pytest.raises(Exception, match="no grid named 'flames'; the file holds: 'density', "
+                                        "'temperature'"):
+        load_medium(tmp_path / "fire.vdb", emission_grid="flames")
+
+
+def test_emission_grid_needs_a_vdb():
+    with pytest.raises(Exception, match="'emission_grid' selects a grid of a .vdb file"):
+        mi.load_dict({"type": "grid_medium", "filename": SMOKE, "emission_grid": "t"})
+
+
+def test_convert_to_vdb_keeps_placement_and_values(tmp_path, capsys):
+    """.vol -> .vdb -> .vol: the same values and world box; the .vdb keeps only the
+    non-zero voxels; a rotated .vdb -> .vdb keeps its rotation (same extinction at
+    random world points)."""
+    rng = np.random.default_rng(4)
+    data = np.zeros((6, 7, 9, 1), np.float32)
+    data[1:4, 2:6, 3:8] = rng.uniform(0.5, 2.0, (3, 4, 5, 1))
+    gridio.write_vol(tmp_path / "a.vol", data, bbox=((-1.0, 0.5, 2.0), (2.0, 1.9, 3.2)))
+    gridio.convert(tmp_path / "a.vol", tmp_path / "a.vdb", report=lambda line: None)
+    info = {g["name"]: g for g in vdb.vdb_info(tmp_path / "a.vdb")}
+    assert info["density"]["active_voxels"] == 3 * 4 * 5
+    gridio.convert(tmp_path / "a.vdb", tmp_path / "b.vol", report=lambda line: None)
+    back, bbox = gridio.read_grid(tmp_path / "b.vol")
+    np.testing.assert_array_equal(back[1:-1, 1:-1, 1:-1], data[1:4, 2:6, 3:8])
+    vox = (np.array([2.0, 1.9, 3.2]) - (-1.0, 0.5, 2.0)) / (9, 7, 6)
+    np.testing.assert_allclose(bbox[0], np.array([-1.0, 0.5, 2.0]) + vox * (2, 1, 0), atol=1e-5)
+    make_vdb(tmp_path / "r.vdb", TRANSFORMS["rotated_scaled_translated"], """
+        g = vdb.FloatGrid(); g.name = "density"; g.transform = t
+        g.copyFromArray(block, ijk=(-2, 3, -5)); grids.append(g)
+    """, block=rng.uniform(0.5, 2.0, (5, 4, 3)).astype(np.float32))
+    gridio.convert(tmp_path / "r.vdb", tmp_path / "r2.vdb", report=lambda line: None)
+    a, b = load_medium(tmp_path / "r.vdb"), load_medium(tmp_path / "r2.vdb")
+    points = np.array(a.bbox.min) + rng.random((2000, 3)) * (np.array(a.bbox.max) - a.bbox.min)
+    np.testing.assert_allclose(sigma_t_at(b, points), sigma_t_at(a, points), atol=1e-5)
