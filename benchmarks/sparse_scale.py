@@ -34,25 +34,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RES, SPP = 128, 16
 
-#: run in Debian's Python (pyopenvdb): a cloud of five Gaussian puffs with a sinusoidal
-#: ripple, thresholded, in the central 56% of an n^3 box; index (0..n) -> world [-1, 1]^3
+#: run in Debian's Python (pyopenvdb): the cloud of benchmarks/cloud.py in an n^3 box,
+#: index (0..n) -> world [-1, 1]^3
 GENERATOR = r"""
 import sys, numpy as np, pyopenvdb as vdb
+sys.path.insert(0, sys.argv[3])
+from cloud import cloud_slices, extent
 n, path = int(sys.argv[1]), sys.argv[2]
 g = vdb.FloatGrid(); g.name = "density"
 t = vdb.createLinearTransform(2.0 / n); t.translate((-1.0, -1.0, -1.0)); g.transform = t
-lo, hi = int(0.22 * n), int(0.78 * n)
-c = (np.arange(lo, hi, dtype=np.float32) + 0.5) / n
-Y, X = np.meshgrid(c, c, indexing="ij")
-puffs = [(0.5, 0.5, 0.5, 0.17), (0.36, 0.55, 0.45, 0.11), (0.64, 0.47, 0.55, 0.12),
-         (0.5, 0.62, 0.4, 0.1), (0.45, 0.4, 0.62, 0.09)]
-for k in range(lo, hi):
-    z = (k + 0.5) / n
-    f = np.zeros_like(X)
-    for px, py, pz, r in puffs:
-        f += np.exp(-((X - px) ** 2 + (Y - py) ** 2 + (z - pz) ** 2) / (2 * r * r))
-    f += 0.18 * np.sin(X * 61.0 + 1.3) * np.sin(Y * 57.0) * np.sin(z * 67.0 + 0.4)
-    d = np.clip((f - 1.08) * 3.0, 0.0, None).astype(np.float32)
+lo, _ = extent(n)
+for k, d in cloud_slices(n):
     g.copyFromArray(np.ascontiguousarray(d.T[:, :, None]), ijk=(lo, lo, k), tolerance=0.0)
 vdb.write(path, grids=[g])
 print(g.activeVoxelCount())
@@ -66,7 +58,8 @@ def generate(n: int, folder: Path) -> tuple:
     if path.exists() and meta.exists():
         return path, json.loads(meta.read_text())["active"]
     t0 = time.perf_counter()
-    out = subprocess.run([openvdb_python(), "-c", GENERATOR, str(n), str(path)],
+    out = subprocess.run([openvdb_python(), "-c", GENERATOR, str(n), str(path),
+                          str(ROOT / "benchmarks")],
                          check=True, capture_output=True, text=True).stdout
     active = int(out.strip().splitlines()[-1])
     meta.write_text(json.dumps({"active": active}))
@@ -100,20 +93,9 @@ def worker(config: dict) -> dict:
     else:
         medium = {"type": "grid_medium", "filename": config["file"], "albedo": 0.8,
                   "storage": config["storage"]}
-    scene_dict = {
-        "type": "scene",
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": 0.3}},
-        "sun": {"type": "directional", "direction": [-1, -1, -0.5],
-                "irradiance": {"type": "rgb", "value": 3.0}},
-        "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium},
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 4.2], [0, 0, 0],
-                                                              [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": RES, "height": RES},
-                   "sampler": {"type": "independent"}},
-    }
+    from cloud import scene_dict
     t0 = time.perf_counter()
-    scene = mi.load_dict(scene_dict)
+    scene = mi.load_dict(scene_dict(medium, RES, mi))
     dr.sync_thread()
     load_s = time.perf_counter() - t0
     load_mb = _hwm_mb() - base

@@ -103,10 +103,21 @@ def test_sparse_lookups_equal_dense(tmp_path, interpolation, channels):
     assert dense.sparse is None and sparse.sparse is not None
     p = _points(rng, to_world, 20000, data.shape)
     a, b = sigma_t_at(dense, p), sigma_t_at(sparse, p)
+    # the exact lookup: a software texture (CUDA's dense texture interpolates in hardware
+    # with 8-bit fractional weights: measured 0.5% of the maximum away on an H100)
+    exact = mi.Texture3f(mi.TensorXf(data), use_accel=False, wrap_mode=dr.WrapMode.Clamp,
+                         filter_mode=(dr.FilterMode.Linear if interpolation == "trilinear"
+                                      else dr.FilterMode.Nearest))
+    local = mi.Transform4f(sparse.to_local) @ mi.Point3f(*(mi.Float(p[:, i]) for i in range(3)))
+    value = np.array(exact.eval(local))
+    ref = (value if channels == 3 else np.repeat(value, 3, axis=0)) * \
+        np.array([1.0, 0.5, 0.25])[:, None]
     if interpolation == "nearest":
-        assert np.array_equal(a, b)
+        assert np.array_equal(a, b) and np.allclose(b, ref, rtol=1e-6, atol=0)
     else:
-        assert np.max(np.abs(a - b)) <= 2e-6 * np.max(a), np.max(np.abs(a - b))
+        assert np.max(np.abs(b - ref)) <= 2e-6 * np.max(ref), np.max(np.abs(b - ref))
+        hardware = mi.variant().startswith("cuda")
+        assert np.max(np.abs(a - b)) <= (3 * 2.0 ** -9 if hardware else 2e-6) * np.max(a)
     assert np.count_nonzero(a) > 1000          # the points do see the data
 
 

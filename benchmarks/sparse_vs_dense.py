@@ -1,0 +1,63 @@
+"""Sparse against dense storage of the same grid, in any variant (no OpenVDB needed):
+the cloud of benchmarks/cloud.py written as an n^3 .npy, loaded by grid_medium with
+``storage = dense`` and ``sparse`` in one process; load time, and time per sample of
+volpath_delta and volpath_raymarch (256x256 at 16 spp, alternating, median of 5 after a
+warm-up). Target (issue 13): sparse <= 1.3x dense.
+
+    MITSUBA_PLUGINS_VARIANT=cuda_ad_rgb python3 benchmarks/sparse_vs_dense.py 256,512
+
+Prints its table (committed figures: docs/benchmarks.md).
+"""
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.registry import default_variant
+
+mi.set_variant(default_variant())
+mi.set_log_level(mi.LogLevel.Error)
+from cloud import scene_dict, write_npy  # noqa: E402  (benchmarks/ is on sys.path)
+from surface import timed_render  # noqa: E402
+
+RES, SPP, RUNS = 256, 16, 5
+
+
+def main(sizes: str) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in map(int, sizes.split(",")):
+            path = str(Path(tmp) / f"cloud{n}.npy")
+            write_npy(n, path)
+            scenes, load = {}, {}
+            for storage in ("dense", "sparse"):
+                medium = {"type": "grid_medium", "filename": path, "albedo": 0.8,
+                          "storage": storage,
+                          "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}
+                t0 = time.perf_counter()
+                scenes[storage] = mi.load_dict(scene_dict(medium, RES, mi))
+                dr.sync_thread()
+                load[storage] = time.perf_counter() - t0
+            for name in ("volpath_delta", "volpath_raymarch"):
+                spec = {"type": name, "max_depth": 16}
+                if name == "volpath_raymarch":
+                    spec["step_size"] = 2.0 / 256
+                integrator = mi.load_dict(spec)
+                times = {s: [] for s in scenes}
+                for s in scenes:
+                    timed_render(scenes[s], integrator, SPP, 0)
+                for run in range(RUNS):
+                    for s in scenes:
+                        times[s].append(timed_render(scenes[s], integrator, SPP, run + 1)[0])
+                ns = {s: statistics.median(v) / (RES * RES * SPP) * 1e9 for s, v in times.items()}
+                print(f"{mi.variant()} {n}^3 {name}: ns/sample dense {ns['dense']:.2f} sparse "
+                      f"{ns['sparse']:.2f} ratio {ns['sparse'] / ns['dense']:.2f}; load s dense "
+                      f"{load['dense']:.2f} sparse {load['sparse']:.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1] if len(sys.argv) > 1 else "256,512")
