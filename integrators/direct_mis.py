@@ -8,7 +8,7 @@ from mitsuba_plugins.mis import HEURISTICS, MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
 from mitsuba_plugins.surface import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
                                      sample_emitter)
-from mitsuba_plugins.validity import SampleGuard
+from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()
 
@@ -67,6 +67,8 @@ class DirectMIS(mi.SamplingIntegrator):
     :math:`w_b = 1`. Unlike Mitsuba 3.9.1's ``direct``, a delta light sampled
     :math:`n_l > 1` times is counted once in expectation, not :math:`n_l` times.
     """
+
+    render_forward, render_backward = refuse_gradients("direct_mis", "prb")
 
     ALLOWED = SAMPLING_INTEGRATOR_BASE + ("shading_samples", "emitter_samples", "bsdf_samples",
                                           "heuristic", "power_exponent", "emitter_selection")

@@ -9,7 +9,7 @@ from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
 from mitsuba_plugins.surface import (EMITTER_SELECTIONS, RR_RULES, EmitterSelection,
                                      RussianRoulette, emission_mis, emitter_contribution,
                                      sample_emitter)
-from mitsuba_plugins.validity import SampleGuard
+from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()
 
@@ -63,6 +63,8 @@ class PathRR(mi.SamplingIntegrator):
 
     where :math:`s_k` is the Russian-roulette survival probability (1 before ``rr_depth``).
     """
+
+    render_forward, render_backward = refuse_gradients("path_rr", "prb")
 
     ALLOWED = SAMPLING_INTEGRATOR_BASE + ("max_depth", "rr_depth", "rr_rule", "rr_survival",
                                           "rr_min_survival", "emitter_selection")

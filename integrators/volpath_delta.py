@@ -13,7 +13,7 @@ from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission
 from mitsuba_plugins.tracking import (TRANSMITTANCE_ESTIMATORS, FreeFlight, SceneMedia,
                                       delta_tracking, homogeneous_free_flight,
                                       medium_interaction, shadow_transmittance)
-from mitsuba_plugins.validity import SampleGuard
+from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()
 
@@ -90,6 +90,8 @@ class VolpathDelta(PathRR):
     where :math:`p_k` is the pdf of the path had channel :math:`k` made the
     real/null decisions (Miller et al. 2019, eq. 24).
     """
+
+    render_forward, render_backward = refuse_gradients("volpath_delta", "prbvolpath")
 
     ALLOWED = SAMPLING_INTEGRATOR_BASE + ("max_depth", "rr_depth", "transmittance")
 

@@ -13,7 +13,7 @@ from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParam
 from mitsuba_plugins.surface import RussianRoulette
 from mitsuba_plugins.tracking import (FreeFlight, SceneMedia, homogeneous_transmittance,
                                       medium_interaction, shadow_transmittance)
-from mitsuba_plugins.validity import SampleGuard
+from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()
 
@@ -89,6 +89,8 @@ class VolpathRaymarch(VolpathDelta):
     Emissive ``grid_medium`` emission is included in both modes. The step size is an
     opaque Dr.Jit value: changing it between renders reuses the compiled kernel.
     """
+
+    render_forward, render_backward = refuse_gradients("volpath_raymarch", "prbvolpath")
 
     ALLOWED = SAMPLING_INTEGRATOR_BASE + ("mode", "max_depth", "rr_depth", "step_size",
                                           "step_mode", "step_optical_depth")

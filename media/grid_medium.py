@@ -461,7 +461,9 @@ class GridMedium(mi.Medium):
             callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
         else:
             if self.sparse is None:
-                callback.put("data", self.data, flags)
+                # differentiable: prbvolpath's gradient w.r.t. it equals the one with
+                # heterogeneous + gridvolume (tests/test_gradients.py)
+                callback.put("data", self.data, mi.ParamFlags.Differentiable)
             callback.put("sigma_t", self.sigma_t_factor, flags)
         callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
         if self.emission is not None:

@@ -114,3 +114,13 @@ def test_reference_override(tmp_path):
     assert [r.reference for r in result.rows] == ["path_rr:max_depth=3"] * 2
     assert list(result.references) == ["path_rr:max_depth=3"]
     assert not np.isnan(result.rows[0].efficiency_ratio)
+
+
+def test_ours_or_builtin_comes_from_the_registry():
+    """Issue 14.6: a Mitsuba integrator absent from compare.BUILTIN (volpathmis, ptracer)
+    is a built-in, every registered plugin is ours, and every key of BUILTIN is one."""
+    from mitsuba_plugins import compare as cmp
+    from mitsuba_plugins.registry import PLUGINS
+    assert all(cmp.is_ours(name) for name in PLUGINS)
+    assert not any(cmp.is_ours(name) for name in ("volpathmis", "ptracer", "path", "prb"))
+    assert set(cmp.BUILTIN) <= set(PLUGINS)
