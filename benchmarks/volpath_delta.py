@@ -3,7 +3,7 @@
 1. Efficiency at equal time. For each scene: both integrators compiled (warm-up), the
    time per sample measured, then volpath at ``--spp`` and volpath_delta at the spp
    that takes about as long; ``--runs`` alternating renders each (different seeds).
-   relMSE (ALGORITHMS.md section 1) against a reference rendered by volpath_delta at
+   relMSE (docs/method.md section 1) against a reference rendered by volpath_delta at
    ``--ref-spp`` (unbiasedness against volpath is tested in tests/test_volpath_delta.py;
    the reference's own noise adds the same expected error to both sides);
    efficiency = 1 / (mean relMSE x median time). Targets (issue): homogeneous

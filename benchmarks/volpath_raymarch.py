@@ -15,7 +15,7 @@ volpath_delta and Mitsuba's volpath.
    image-mean bias ``mean(a) / mean(f) - 1``. The fine march itself is compared with
    the independent unbiased reference (Mitsuba's volpath at ``--bias-ref-spp`` in 16
    passes; on the chromatic scene volpath_delta, since volpath is biased there,
-   VALIDATION.md) the same way, unpaired. The order is the slope of log |image-mean
+   docs/validation.md) the same way, unpaired. The order is the slope of log |image-mean
    bias| against log(step) over the steps where that bias exceeds 3 standard errors.
 2. Error against time (smoke and sparse): each integrator renders passes of
    ``--curve-spp`` until ``--budget`` seconds are spent (compiled first); after each

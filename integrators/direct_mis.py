@@ -53,7 +53,7 @@ class DirectMIS(mi.SamplingIntegrator):
     A drop-in for Mitsuba's ``direct``: with default parameters it renders the same image,
     bit for bit. Surfaces only, no indirect light.
 
-    Multi-sample MIS estimator (Veach 1997, eq. 9.4; ALGORITHMS.md sections 2-3) with
+    Multi-sample MIS estimator (Veach 1997, eq. 9.4; docs/method.md sections 2-3) with
     :math:`n_l` emitter and :math:`n_b` BSDF samples:
 
     .. math::

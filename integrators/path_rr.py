@@ -53,7 +53,7 @@ class PathRR(mi.SamplingIntegrator):
     the same order and renders the same image, bit for bit. Surfaces only: it ignores
     participating media (use ``volpath_delta``).
 
-    Estimator (ALGORITHMS.md sections 4-5; Veach 1997, eq. 9.13 with the power heuristic):
+    Estimator (docs/method.md sections 4-5; Veach 1997, eq. 9.13 with the power heuristic):
 
     .. math::
 

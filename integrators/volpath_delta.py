@@ -64,7 +64,7 @@ class VolpathDelta(PathRR):
     the same image with less variance per unit time:
 
     * homogeneous media: analytic free-flight sampling with the channel-averaged pdf
-      (ALGORITHMS.md section 7) and analytic shadow transmittance ``exp(-sigma_t d)``;
+      (docs/method.md section 7) and analytic shadow transmittance ``exp(-sigma_t d)``;
     * heterogeneous media: delta tracking against the majorant grid of ``grid_medium``
       (the global majorant for other media), null-scattering formulation with spectral
       MIS over the hero channel for chromatic extinction (Miller, Georgiev and Jarosz

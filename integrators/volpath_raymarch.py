@@ -1,5 +1,5 @@
 """Biased ray-marching volumetric path tracer: single or multiple scattering on the
-piecewise-constant medium a march sees (ALGORITHMS.md section 10)."""
+piecewise-constant medium a march sees (docs/method.md section 10)."""
 from __future__ import annotations
 
 import drjit as dr

@@ -443,7 +443,7 @@ class GridMedium(mi.Medium):
 
     def get_radiance(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
         """Emitted radiance :math:`L_e` at ``mei.p`` (0 without ``emission``); an
-        integrator adds :math:`\\sigma_a L_e` per unit length (ALGORITHMS.md section 6)."""
+        integrator adds :math:`\\sigma_a L_e` per unit length (docs/method.md section 6)."""
         if self.emission is None:
             return mi.Color3f(0.0)
         radiance = mi.Color3f(self.emission.eval(mei, active))

@@ -1,5 +1,5 @@
 """Speed against error: render integrators on one scene and measure each against a
-high-spp reference from the matching Mitsuba built-in (ALGORITHMS.md section 1).
+high-spp reference from the matching Mitsuba built-in (docs/method.md section 1).
 
 Two modes. Equal spp: every integrator renders ``passes`` passes of ``spp / passes``
 samples. Equal time: every integrator renders passes of ``spp_per_pass`` samples until

@@ -1,4 +1,4 @@
-"""Majorant grid and its DDA traversal (ALGORITHMS.md section 8).
+"""Majorant grid and its DDA traversal (docs/method.md section 8).
 
 A :class:`MajorantGrid` covers a box, the unit cube of a grid's local frame, with
 ``R_x x R_y x R_z`` cells and stores for each cell an upper bound of the extinction
@@ -153,7 +153,6 @@ class MajorantGrid:
         self.values = mi.Float(values.ravel())
         lows = np.zeros_like(values) if minorants is None else \
             np.minimum(np.asarray(minorants, dtype=np.float32).reshape(values.shape), values)
-        self.host_minorants = lows
         self.minorants = mi.Float(lows.ravel())
         self.outside = dr.opaque(mi.Float, float(outside))
         self.to_local = mi.Transform4f(to_local)
@@ -171,15 +170,6 @@ class MajorantGrid:
     def _clamp_cell(self, cell: mi.Vector3i) -> mi.Vector3i:
         rx, ry, rz = self.resolution
         return dr.clip(cell, mi.Vector3i(0), mi.Vector3i(rx - 1, ry - 1, rz - 1))
-
-    def eval(self, p: mi.Point3f, active=True) -> mi.Float:
-        """Bound at world point ``p`` (the cell's, or ``outside`` beyond the box)."""
-        q = self.to_local @ p
-        inside = dr.all((q >= 0) & (q <= 1))
-        res = mi.Vector3f(self.resolution)
-        cell = self._clamp_cell(mi.Vector3i(dr.floor(q * res)))
-        value = dr.gather(mi.Float, self.values, self._index(cell), active & inside)
-        return dr.select(inside, value, self.outside)
 
     # -- traversal ---------------------------------------------------------------
     def start(self, ray: mi.Ray3f, tmin: mi.Float, tmax: mi.Float, active=True) -> DDAState:

@@ -1,4 +1,4 @@
-"""Ray marching through heterogeneous media (ALGORITHMS.md section 10).
+"""Ray marching through heterogeneous media (docs/method.md section 10).
 
 A march cuts a ray's stretch of medium into cells and treats the medium as constant
 in each cell, at its value at the cell's midpoint. Everything here is then *exact for

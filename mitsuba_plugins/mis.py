@@ -1,4 +1,4 @@
-"""Multiple-importance-sampling weights (Veach 1997, ch. 9; ALGORITHMS.md section 2).
+"""Multiple-importance-sampling weights (Veach 1997, ch. 9; docs/method.md section 2).
 
 Every function takes the *effective* densities ``a = n_self * p_self`` and
 ``b = n_other * p_other`` of two techniques, both in the same measure (solid angle), and

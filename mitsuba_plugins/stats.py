@@ -2,10 +2,10 @@
 
 An :class:`Estimate` is the mean of K independent renders (different seeds) with its
 per-pixel standard error, so that two estimators can be compared with both of their
-variances (VALIDATION.md): a per-pixel Welch test with Sidak correction, the same test
+variances (docs/validation.md): a per-pixel Welch test with Sidak correction, the same test
 on block means, and a z-test on the image mean.
 
-Deviation from VALIDATION.md's per-pixel *z*-test: the Welch statistic is compared with
+Deviation from docs/validation.md's per-pixel *z*-test: the Welch statistic is compared with
 Student's t at its Welch-Satterthwaite degrees of freedom (per pixel channel), not with the
 normal distribution. Standard errors come from 8-16 passes (about 11 degrees of freedom),
 and against the normal threshold (|z| = 4.65 at 3072 values) a value fails by chance with
@@ -177,7 +177,7 @@ class Comparison:
 
 def compare(a: Estimate, b: Estimate, alpha: float = 0.01, max_pixel_fail_fraction: float = 0.0025,
             block: int = 8, mean_threshold: float = 4.5, se_floor: float = SE_FLOOR) -> Comparison:
-    """Is ``a`` a sample of the same expectation as ``b``? (VALIDATION.md, three checks)
+    """Is ``a`` a sample of the same expectation as ``b``? (docs/validation.md, three checks)
 
     1. per-pixel-channel Welch test (t at Welch-Satterthwaite df, see the module
        docstring), Sidak-corrected at ``alpha`` over all pixel channels; at most
@@ -236,5 +236,5 @@ def rel_mse(image: np.ndarray, reference: np.ndarray, eps: float = REL_MSE_EPS) 
 
 
 def efficiency(rel_mse_value: float, seconds: float) -> float:
-    """Efficiency 1 / (relative MSE x time) (ALGORITHMS.md section 1): higher is better."""
+    """Efficiency 1 / (relative MSE x time) (docs/method.md section 1): higher is better."""
     return 1.0 / (rel_mse_value * seconds) if rel_mse_value > 0 and seconds > 0 else math.inf

@@ -132,7 +132,7 @@ def emitter_contribution(mis: MIS, si, ds, em_weight, wo, bsdf_val, p_b,
 
 
 class RussianRoulette:
-    """Path termination (ALGORITHMS.md section 5) after ``rr_depth`` path vertices.
+    """Path termination (docs/method.md section 5) after ``rr_depth`` path vertices.
 
     ``throughput`` (Mitsuba's rule): survival s = clamp(max(beta) * eta^2, s_min, 0.95).
     ``fixed``: survival s = ``survival`` at every vertex.

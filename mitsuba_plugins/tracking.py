@@ -1,5 +1,5 @@
 """Free-flight sampling and transmittance estimation in participating media
-(ALGORITHMS.md sections 7-9).
+(docs/method.md sections 7-9).
 
 Vectorised building blocks for the volumetric integrators:
 
@@ -106,7 +106,7 @@ def homogeneous_free_flight(sigma_t: mi.Spectrum, t_max: mi.Float, u: mi.Float, 
     of the whole path: with ``p_k`` the pdf of this event had channel ``k`` drawn it
     (``sigma_t[k] T_k(t)`` or ``T_k(t_max)``) and ``r_u`` the path's pdf ratios so far
     (mean 1), ``weight = T / mean(r_u p)`` and ``r_u <- r_u p / mean(r_u p)``. At the
-    first vertex (``r_u = 1``) this is exactly ALGORITHMS.md section 7's channel-
+    first vertex (``r_u = 1``) this is exactly docs/method.md section 7's channel-
     averaged pdf; over a path it keeps each channel's weight below ``n`` times its own
     single-channel weight, where per-vertex averaging multiplies factors up to ``n``
     at every vertex (measured: a dense albedo-1 furnace with extinctions 0.05/1/5
@@ -339,7 +339,7 @@ def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampl
 
     Tentative collisions follow the majorant grid's segments; one exponential optical
     depth carries over segment boundaries, so crossing a cell costs no random number.
-    At a tentative collision at ``x`` (ALGORITHMS.md section 8):
+    At a tentative collision at ``x`` (docs/method.md section 8):
 
     * gray (``spectral`` false): real with probability ``sigma_t / sigma_maj``, weight
       ``sigma_s / sigma_t``; null otherwise, weight 1.
@@ -413,7 +413,7 @@ def delta_tracking(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampl
 @dr.syntax
 def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
                   method: str, active: mi.Bool) -> mi.Spectrum:
-    r"""Unbiased estimate of ``exp(-int_0^t_max sigma_t)`` along ``ray`` (ALGORITHMS.md
+    r"""Unbiased estimate of ``exp(-int_0^t_max sigma_t)`` along ``ray`` (docs/method.md
     section 9), ``method`` one of :data:`TRANSMITTANCE_ESTIMATORS`:
 
     * ``ratio``: at every tentative collision ``T *= sigma_n / sigma_maj``;

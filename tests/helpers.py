@@ -52,7 +52,7 @@ def assert_same_render(a: np.ndarray, b: np.ndarray, rtol: float = 1e-5):
 
 
 def assert_same_expectation(a: stats.Estimate, b: stats.Estimate, name: str, **kw):
-    """VALIDATION.md's three checks; on failure the images and the z map are written."""
+    """docs/validation.md's three checks; on failure the images and the z map are written."""
     result = stats.compare(a, b, **kw)
     if not result.passed:
         FAILURES.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,5 @@
 """Our estimators where they differ from the built-ins on purpose (other heuristic, emitter
-selection, roulette rule) against the built-ins: VALIDATION.md's per-pixel Welch z-test
+selection, roulette rule) against the built-ins: docs/validation.md's per-pixel Welch z-test
 with Sidak correction (alpha = 0.01, <= 0.25% pixel channels failing), 8x8 block means
 (none failing) and image mean (|z| <= 4.5). Candidate and reference use disjoint seeds."""
 import mitsuba as mi

@@ -7,7 +7,7 @@ helpers.estimate). Then, per case:
   rays): our integrators draw Mitsuba's random numbers in Mitsuba's order, so each image
   must equal the built-in's at the same seed up to float rounding (``direct_mis`` vs
   ``direct``; ``path_rr``, and ``volpath_*`` on a scene without media, vs ``path``);
-* media: the VALIDATION.md z-tests against ``volpath`` (8 passes x 32 spp against
+* media: the docs/validation.md z-tests against ``volpath`` (8 passes x 32 spp against
   16 x 64 spp at 24x24, Sidak-corrected; 16 spp per pass at 8x8 for the dense grids), or, where ``volpath`` is wrong (chromatic extinction),
   against channel-wise gray ``volpath`` references, with the built-in's failure measured;
 * furnaces: albedo-1 media in a uniform environment of radiance 1 render 1 (t-test);

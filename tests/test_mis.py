@@ -1,4 +1,4 @@
-"""MIS heuristics alone (ALGORITHMS.md section 2)."""
+"""MIS heuristics alone (docs/method.md section 2)."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -70,7 +70,7 @@ def test_power_weights_sum_to_one_for_any_exponent(exponent):
 @pytest.mark.parametrize("exponent", [30.0, 100.0, 1e6])
 def test_direct_mis_any_power_exponent_matches_direct(exponent):
     """Issue 17.9: exponent 100 rendered the Cornell box 31% too dark, with no NaN to
-    show for it. Now the same expectation as Mitsuba's ``direct`` (VALIDATION.md's
+    show for it. Now the same expectation as Mitsuba's ``direct`` (docs/validation.md's
     three checks: Sidak-corrected per-pixel Welch z-test at alpha 0.01 with <= 0.25%
     failing, 8x8 block means, image mean |z| <= 4.5), fixed seeds."""
     from helpers import assert_same_expectation, estimate, load

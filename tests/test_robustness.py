@@ -249,7 +249,7 @@ def test_only_hot_media_carry_refinement(monkeypatch):
 @pytest.mark.parametrize("method", ["track_length", "ratio", "residual"])
 def test_refinement_is_unbiased_on_smoke(method, monkeypatch):
     """Refined pieces everywhere in the smoke (threshold 0.5) render the same image as
-    plain majorant segments (VALIDATION.md's three checks, fixed seeds). 32 passes: with
+    plain majorant segments (docs/validation.md's three checks, fixed seeds). 32 passes: with
     16 the per-pixel standard error has 15 degrees of freedom, and one gray pixel past
     the Sidak limit (3 channels = 0.39%) came up for residual tracking by chance; at
     64 passes x 256 spp all three modes agreed (image-mean z 1.27 / 2.03 / 0.95, block
@@ -265,7 +265,7 @@ def test_work_budget_roulette_is_unbiased(method, monkeypatch):
     """The fallback once a tracking call exceeds its work budget (each further iteration
     survives with probability 1/2, weight 2) keeps the expectation: with a budget of 24
     iterations the (refined) smoke renders what it renders without a budget
-    (VALIDATION.md's three checks, fixed seeds). The roulette is played: it changes
+    (docs/validation.md's three checks, fixed seeds). The roulette is played: it changes
     over 10% of the pixels of a render with the same seed. (A budget of 12 makes the
     weights so heavy-tailed, up to 2^k, that 16 passes underestimate the per-pixel error:
     8% of pixels failed while the image mean stayed within z 0.5.)"""

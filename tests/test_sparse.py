@@ -213,7 +213,7 @@ def test_degenerate_sparse_grids_render_finite(tmp_path, case):
 @pytest.mark.parametrize("integrator", ["volpath_delta", "volpath_raymarch", "volpath"])
 @pytest.mark.parametrize("scene_file", ["smoke", "sparse"])
 def test_sparse_renders_what_dense_renders(integrator, scene_file):
-    """The same grid stored dense and sparse: the same image (VALIDATION.md's checks,
+    """The same grid stored dense and sparse: the same image (docs/validation.md's checks,
     disjoint seeds). volpath sees the global majorant and get_scattering_coefficients
     only, so with the same seed it is the same render up to float rounding of the
     interpolation weights."""

@@ -209,7 +209,7 @@ def _twins(tmp_path):
 @pytest.mark.parametrize("integrator", ["volpath_delta", "volpath_raymarch", "volpath"])
 def test_vdb_renders_what_the_same_data_as_vol_renders(tmp_path, integrator):
     """The smoke as .vdb stored sparse and as .vol stored dense: same image
-    (VALIDATION.md's three checks, fixed seeds), with ours and with Mitsuba's volpath
+    (docs/validation.md's three checks, fixed seeds), with ours and with Mitsuba's volpath
     (which sees the global majorant and get_scattering_coefficients only)."""
     vol, vdb_medium = _twins(tmp_path)
     vdb_medium["storage"] = "sparse"

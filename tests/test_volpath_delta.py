@@ -1,4 +1,4 @@
-"""volpath_delta against Mitsuba's volpath (VALIDATION.md's Welch z-test: per pixel with
+"""volpath_delta against Mitsuba's volpath (docs/validation.md's Welch z-test: per pixel with
 Sidak correction, 8x8 blocks, image mean; disjoint seeds), against analytic answers
 (t-tests), its transmittance estimators alone, scene specialisation and hard cases.
 
@@ -8,7 +8,7 @@ Analytic answers used here:
   nor emits, so radiance is 1 everywhere: every pixel is exactly 1 (max_depth -1).
 * Emissive absorbing slab: a camera ray crossing a purely absorbing slab of thickness d
   with emitted radiance Le and no light behind it collects
-  int_0^d sigma_t exp(-sigma_t s) Le ds = Le (1 - exp(-sigma_t d)) (ALGORITHMS.md
+  int_0^d sigma_t exp(-sigma_t s) Le ds = Le (1 - exp(-sigma_t d)) (docs/method.md
   section 6, sigma_a Le convention; sigma_a = sigma_t for albedo 0).
 """
 from __future__ import annotations
@@ -87,7 +87,7 @@ def test_chromatic_homogeneous_against_channelwise_gray_references():
     channel drives distance sampling: measured 1.3% of pixels at |z| > 4.65, max
     z 12.9, against the reference below, at 2048 spp). Since everything else in the
     scene is gray, channel c of the image equals the image of the gray medium with
-    sigma_t = sigma_t[c]; those are rendered with volpath (VALIDATION.md)."""
+    sigma_t = sigma_t[c]; those are rendered with volpath (docs/validation.md)."""
     sigma = [0.3, 1.0, 3.0]
     a = estimate(media_scene(homogeneous(sigma, albedo=0.9)),
                  {"type": "volpath_delta", "max_depth": DEPTH}, passes=8, spp=32, seed=1000)

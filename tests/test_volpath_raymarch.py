@@ -4,7 +4,7 @@
   march's bias is far below what these tests can see (image-mean biases at a step of
   1/16 measured at +0.003% smoke, +0.0006% chromatic, +0.015% sparse:
   benchmarks/results/volpath_raymarch.md), so the
-  VALIDATION.md Welch z-test (per pixel with Sidak, 8x8 blocks, image mean; disjoint
+  docs/validation.md Welch z-test (per pixel with Sidak, 8x8 blocks, image mean; disjoint
   seeds) must pass and the image means must agree within ``MEAN_BOUND``.
 * ``single`` with ``max_depth = 2`` estimates what Mitsuba's ``volpath`` does with
   ``max_depth = 2`` (one scattering event, in a medium or on a surface).
@@ -93,7 +93,7 @@ def test_single_against_volpath_depth_2(case):
 
 def test_chromatic_against_volpath_delta():
     """Chromatic extinction (ratio 12.5): Mitsuba's volpath is biased there
-    (VALIDATION.md), so the reference is volpath_delta (validated against channel-wise
+    (docs/validation.md), so the reference is volpath_delta (validated against channel-wise
     gray references in its own tests)."""
     scene = load("chromatic", res=RES)
     for mode, depth in (("multi", DEPTH), ("single", 2)):
