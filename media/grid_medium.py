@@ -141,6 +141,10 @@ class GridMedium(mi.Medium):
     does not expose its pool: changing voxel values would change which bricks exist.
     """
 
+    #: implements mitsuba_plugins.tracking.TrackedMedium (majorant_grid, refinement,
+    #: eval_sigma_t, eval_albedo, get_radiance, has_emission, is_chromatic, bbox)
+    PROVIDES_TRACKING = True
+
     ALLOWED = ("filename", "grid", "sigma_t", "scale", "albedo", "emission", "interpolation",
                "to_world", "use_grid_bbox", "majorant_resolution", "has_spectral_extinction",
                "sample_emitters", "storage", "emission_grid")
@@ -431,9 +435,13 @@ class GridMedium(mi.Medium):
             sigma_t *= self.phase_function().projected_area(mei, active)
         return sigma_t
 
+    def eval_albedo(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
+        """Single-scattering albedo at ``mei.p`` (per channel)."""
+        return self.albedo.eval(mei, active)
+
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         sigma_t = self.eval_sigma_t(mei, active)
-        sigma_s = sigma_t * self.albedo.eval(mei, active)
+        sigma_s = sigma_t * self.eval_albedo(mei, active)
         sigma_n = mi.Color3f(self.global_majorant) - sigma_t
         return sigma_s, sigma_n, sigma_t
 

@@ -22,6 +22,8 @@ is a length and the pdfs are per unit length.
 """
 from __future__ import annotations
 
+from typing import Optional, Protocol
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -150,18 +152,53 @@ def homogeneous_transmittance(sigma_t: mi.Spectrum, distance: mi.Float) -> mi.Sp
 
 
 # -- heterogeneous media --------------------------------------------------------------
+class TrackedMedium(Protocol):
+    """The contract between a medium and our integrators' tracking loops.
+
+    A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
+
+    * ``majorant_grid``: a :class:`~mitsuba_plugins.majorant.MajorantGrid` whose segments
+      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py);
+    * ``refinement``: ``(voxels per local unit, trilinear)`` when a segment can be hot
+      (see :meth:`MediumTracker.piece`), else None;
+    * ``eval_sigma_t(mei, active)``, ``eval_albedo(mei, active)`` and
+      ``get_radiance(mei, active)`` (``Le``; 0 without emission), per channel;
+    * ``has_emission``, ``is_chromatic`` (extinction differs between channels) and
+      ``bbox`` (world bounds), plus Mitsuba's ``intersect_aabb``.
+
+    Any other medium (Mitsuba's ``heterogeneous``) is tracked through Mitsuba's own
+    interface alone: one global majorant and ``get_scattering_coefficients``.
+    """
+    PROVIDES_TRACKING: bool
+    majorant_grid: MajorantGrid
+    refinement: Optional[tuple]
+    has_emission: bool
+    is_chromatic: bool
+
+    def eval_sigma_t(self, mei, active): ...
+
+    def eval_albedo(self, mei, active): ...
+
+    def get_radiance(self, mei, active): ...
+
+
 class MediumTracker:
     """What the tracking loops need from one heterogeneous medium: its majorant grid
-    (the per-cell bounds of ``grid_medium``, or one global majorant for any other
-    medium, e.g. Mitsuba's ``heterogeneous``), its bounds and its coefficients."""
+    (the per-cell bounds of a :class:`TrackedMedium`, or one global majorant for any
+    other medium, e.g. Mitsuba's ``heterogeneous``), its bounds and its coefficients."""
 
     def __init__(self, medium: mi.Medium, extent: float = np.inf):
         self.medium = medium
-        self.is_grid = hasattr(medium, "majorant_grid")
-        self.has_emission = bool(getattr(medium, "has_emission", False))
+        self.is_grid = bool(getattr(medium, "PROVIDES_TRACKING", False))
+        self.has_emission = bool(medium.has_emission) if self.is_grid else False
+        #: extinction differs between channels (Mitsuba's media: as they declare)
+        self.is_chromatic = bool(medium.is_chromatic) if self.is_grid else \
+            medium.has_spectral_extinction()
+        #: diagonal of the medium's world box (None: unbounded, as Mitsuba's media say)
+        self.diagonal = _diagonal(medium.bbox) if self.is_grid else None
         #: (voxels per local unit on each axis, interpolation) of a grid whose hot
         #: segments are refined (:meth:`piece`); None: no refinement
-        self.voxels = getattr(medium, "refinement", None) if self.is_grid else None
+        self.voxels = medium.refinement if self.is_grid else None
         #: ``hot``: a segment can hold more than REFINE_OPTICAL_DEPTH tentative
         #: collisions, so a crossing's work is not bounded by construction and tracking
         #: keeps a work budget (``extent``: the longest stretch a ray can travel)
@@ -194,7 +231,7 @@ class MediumTracker:
         """``(sigma_t, sigma_s, Le)`` at ``mei.p`` (``Le`` is 0 without emission)."""
         if self.is_grid:
             sigma_t = mi.Spectrum(self.medium.eval_sigma_t(mei, active))
-            sigma_s = sigma_t * mi.Spectrum(self.medium.albedo.eval(mei, active))
+            sigma_s = sigma_t * mi.Spectrum(self.medium.eval_albedo(mei, active))
             if self.has_emission:
                 return sigma_t, sigma_s, mi.Spectrum(self.medium.get_radiance(mei, active))
             return sigma_t, sigma_s, mi.Spectrum(0.0)
@@ -526,16 +563,14 @@ class SceneMedia:
         # Mitsuba's media claim spectral extinction by default; a homogeneous one is
         # chromatic only if its channels differ (read back once per render).
         self.spectral_homogeneous = multichannel and any(_is_chromatic(m) for m in homogeneous)
-        self.spectral = multichannel and any(
-            getattr(t.medium, "is_chromatic", t.medium.has_spectral_extinction())
-            for t in self.trackers.values())
+        self.spectral = multichannel and any(t.is_chromatic for t in self.trackers.values())
         self.emission = any(t.has_emission for t in self.trackers.values())
 
     def extent(self) -> float:
         """Longest stretch a ray can travel through one heterogeneous medium: the
         largest diagonal of their bounding boxes (the scene's, for media without one)."""
-        sizes = [self.scene_extent if getattr(t.medium, "bbox", None) is None
-                 else _diagonal(t.medium.bbox) for t in self.trackers.values()]
+        sizes = [self.scene_extent if t.diagonal is None else t.diagonal
+                 for t in self.trackers.values()]
         return max(sizes, default=0.0)
 
     def call(self, medium: mi.MediumPtr, fn, *args):
