@@ -5,9 +5,9 @@ per-pixel standard error, so that two estimators can be compared with both of th
 variances (docs/validation.md): a per-pixel Welch test with Sidak correction, the same test
 on block means, and a z-test on the image mean.
 
-Deviation from docs/validation.md's per-pixel *z*-test: the Welch statistic is compared with
-Student's t at its Welch-Satterthwaite degrees of freedom (per pixel channel), not with the
-normal distribution. Standard errors come from 8-16 passes (about 11 degrees of freedom),
+Deviation from the project's validation guide, which asks for a per-pixel *z*-test: the
+Welch statistic is compared with Student's t at its Welch-Satterthwaite degrees of freedom
+(per pixel channel), not with the normal distribution. Standard errors come from 8-16 passes (about 11 degrees of freedom),
 and against the normal threshold (|z| = 4.65 at 3072 values) a value fails by chance with
 probability ~1e-3 instead of ~3e-6: equal estimators failed 0 to 0.16% of pixel channels
 of the 0.25% allowed (six seed pairs of volpath_raymarch against volpath on
