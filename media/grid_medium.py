@@ -267,21 +267,9 @@ class GridMedium(mi.Medium):
         """Stream the grid into bricks (:mod:`mitsuba_plugins.bricks`); ``storage =
         auto`` falls back to dense storage when the bricks save less than half."""
         from mitsuba_plugins.sparse import SparseGrid
-        builder = bricks.BrickBuilder(header.shape)
-        if header.vdb_grid is not None:
-            # the OpenVDB worker cuts the bricks: only stored ones cross the pipe (a
-            # non-finite or negative value is non-zero, so its brick is checked here)
-            from mitsuba_plugins.vdb import iter_vdb_bricks
-            for row, cols, blocks in iter_vdb_bricks(header):
-                gridio.check_values(header.path, "density", blocks)
-                builder.add_row(row, cols, blocks)
-        else:
-            for z0, slab in gridio.iter_slabs(header):
-                gridio.check_values(header.path, "density", slab)
-                builder.add(z0, slab)
-        builder.finish_check()
+        builder = _read_bricks(header, "density")
         index = builder.index
-        maxima, minima = np.concatenate(builder.maxima), np.concatenate(builder.minima)
+        maxima, minima = builder.extrema()
         sparse_bytes = 4 * (index.size + builder.stored * bricks.SIDE ** 3 * header.channels)
         if self.storage == "auto" and sparse_bytes > AUTO_SPARSE_FRACTION * 4 * header.size:
             self.storage = "dense"
@@ -525,16 +513,30 @@ def _vdb_to_world(header, to_world: mi.ScalarTransform4f) -> mi.ScalarTransform4
                                 dr.scalar.Matrix4f(np.linalg.inv(matrix).T.astype(np.float32)))
 
 
+def _read_bricks(header, what: str) -> bricks.BrickBuilder:
+    """A filled :class:`~mitsuba_plugins.bricks.BrickBuilder` of a grid file, every value
+    checked (finite, >= 0; ``what`` names the data in errors). For a .vdb the OpenVDB
+    worker cuts the bricks and only stored ones cross the pipe (a non-finite or negative
+    value is non-zero, so its brick is among the checked ones)."""
+    builder = bricks.BrickBuilder(header.shape)
+    if header.vdb_grid is not None:
+        from mitsuba_plugins.vdb import iter_vdb_bricks
+        for row, cols, blocks in iter_vdb_bricks(header):
+            gridio.check_values(header.path, what, blocks)
+            builder.add_row(row, cols, blocks)
+    else:
+        for z0, slab in gridio.iter_slabs(header):
+            gridio.check_values(header.path, what, slab)
+            builder.add(z0, slab)
+    builder.finish_check()
+    return builder
+
+
 def _load_emission_grid(path: str, name: str, to_world: mi.ScalarTransform4f):
     """``(SparseGrid, world -> local)`` of grid ``name`` of a .vdb (values >= 0)."""
     from mitsuba_plugins.sparse import SparseGrid
-    from mitsuba_plugins.vdb import iter_vdb_bricks
     header = gridio.read_header(path, name)
-    builder = bricks.BrickBuilder(header.shape)
-    for row, cols, blocks in iter_vdb_bricks(header):
-        gridio.check_values(path, f"emission_grid {name!r}", blocks)
-        builder.add_row(row, cols, blocks)
-    builder.finish_check()
+    builder = _read_bricks(header, f"emission_grid {name!r}")
     grid = SparseGrid(header.shape, builder.index, builder.pool_chunks(), builder.stored)
     return grid, _vdb_to_world(header, to_world).inverse()
 

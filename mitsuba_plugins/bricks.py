@@ -33,8 +33,10 @@ def brick_counts(shape) -> tuple:
 class BrickBuilder:
     """Collects the stored bricks of a ``(Z, Y, X, C)`` grid fed as z-slabs in order."""
 
-    def __init__(self, shape):
+    def __init__(self, shape, keep_blocks: bool = True):
+        """``keep_blocks`` false: count the stored bricks (and their extrema) only."""
         self.shape = tuple(int(s) for s in shape)
+        self.keep_blocks = keep_blocks
         z, y, x, c = self.shape
         self.counts = brick_counts(self.shape)
         bz, by, bx = self.counts
@@ -74,7 +76,8 @@ class BrickBuilder:
             return
         self.index[row, cols[0], cols[1]] = np.arange(self.stored, self.stored + n,
                                                       dtype=np.uint32)
-        self.blocks.append(blocks)
+        if self.keep_blocks:
+            self.blocks.append(blocks)
         self.maxima.append(blocks.max(axis=(1, 2, 3)))
         self.minima.append(blocks.min(axis=(1, 2, 3)))
         self.stored += n
@@ -103,7 +106,11 @@ class BrickBuilder:
         self.finish_check()
         pool = np.concatenate(self.blocks) if len(self.blocks) > 1 else self.blocks[0]
         self.blocks = []
-        return (self.index, pool, np.concatenate(self.maxima), np.concatenate(self.minima))
+        return (self.index, pool, *self.extrema())
+
+    def extrema(self) -> tuple:
+        """``(maxima, minima)``: per slot (0: the empty block), per channel."""
+        return np.concatenate(self.maxima), np.concatenate(self.minima)
 
     def pool_chunks(self):
         """The pool as the list of its chunks (in slot order), handed over once: a caller

@@ -376,7 +376,7 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
     header = read_header(path, grid)
     z, y, x, c = header.shape
     builder = MajorantBuilder(header.shape, resolution_for(header.shape, cells))
-    bricks = BrickBuilder(header.shape)
+    bricks = BrickBuilder(header.shape, keep_blocks=False)
     total, vmin, vmax, nonfinite = 0.0, np.inf, 0.0, 0
     for z0, slab in iter_slabs(header):
         finite = np.isfinite(slab)
@@ -386,7 +386,6 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
         vmin, vmax = min(vmin, float(slab.min())), max(vmax, float(slab.max()))
         builder.add(z0, slab)
         bricks.add(z0, slab)
-        bricks.blocks = bricks.blocks[:1]        # only the count is needed
     mean = total / header.size
     cells_max = builder.finish()
     lo, hi, _ = world_box(header)

@@ -108,10 +108,14 @@ def render_passes(scene, passes: int, spp_per_pass: int, integrator=None, seed: 
     return Estimate.from_passes(images, spp_per_pass, times, invalid)
 
 
+def sidak_alpha(alpha: float, tests: int) -> float:
+    """Per-test level giving family-wise level ``alpha`` over ``tests`` tests (Sidak)."""
+    return -math.expm1(math.log1p(-alpha) / max(tests, 1))
+
+
 def sidak_z(alpha: float, tests: int) -> float:
     """Two-sided critical |z| for family-wise level ``alpha`` over ``tests`` tests (Sidak)."""
-    alpha_1 = -math.expm1(math.log1p(-alpha) / max(tests, 1))
-    return NormalDist().inv_cdf(1 - alpha_1 / 2)
+    return NormalDist().inv_cdf(1 - sidak_alpha(alpha, tests) / 2)
 
 
 def welch_z(a: Estimate, b: Estimate, se_floor: float = SE_FLOOR) -> np.ndarray:
@@ -131,7 +135,7 @@ def welch_failures(z: np.ndarray, df: np.ndarray, alpha: float) -> tuple:
     """Which values of ``z`` fail the two-sided Welch t-test at family-wise level ``alpha``
     (Sidak over all values), and the critical |t| at the median ``df`` (for reports)."""
     from scipy import stats as sps
-    alpha_1 = -math.expm1(math.log1p(-alpha) / max(z.size, 1))
+    alpha_1 = sidak_alpha(alpha, z.size)
     fails = 2 * sps.t.sf(np.abs(z), df) < alpha_1
     return fails, float(sps.t.isf(alpha_1 / 2, float(np.median(df))))
 

@@ -18,6 +18,7 @@ so trilinear lookups fall to 0 across the border exactly as OpenVDB's do.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -116,41 +117,15 @@ def read_vdb_header(path, grid: str):
                       index_to_world=tuple(map(tuple, matrix.tolist())))
 
 
-def iter_vdb_slabs(header, slab_bytes: int):
-    """Yield ``(z0, slab)``: float32 ``(k, Y, X, C)`` slabs of the header's box, read by
-    the worker and streamed through a pipe (one slab in memory at a time)."""
-    z, y, x, c = header.shape
-    per_slab = max(1, slab_bytes // (4 * x * y * c))
+@contextlib.contextmanager
+def _reader(header, command: str, *args):
+    """Run the worker's ``command`` on the header's grid and box; yields ``read(count)``,
+    which returns exactly ``count`` bytes of its output or fails naming the file (with
+    the worker's last line). The worker is killed if the caller stops early."""
+    z, y, x, _ = header.shape
     i0, j0, k0 = header.index_min
-    args = ["read", header.path, header.vdb_grid, i0, j0, k0, x, y, z, per_slab]
-    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, args)],
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
-        try:
-            for z0 in range(0, z, per_slab):
-                k = min(per_slab, z - z0)
-                count = k * y * x * c
-                raw = proc.stdout.read(4 * count)
-                if len(raw) != 4 * count:
-                    proc.wait()
-                    reason = proc.stderr.read().decode(errors="replace").strip()
-                    _fail(header.path, "reading grid values failed ("
-                          + (reason.splitlines()[-1] if reason else "stream ended early")
-                          + ")")
-                yield z0, np.frombuffer(raw, dtype="<f4").reshape(k, y, x, c)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-
-
-def iter_vdb_bricks(header):
-    """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
-    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker, which never holds
-    more than one row of the box; only stored bricks cross the pipe."""
-    from mitsuba_plugins.bricks import BRICK, SIDE
-    z, y, x, c = header.shape
-    i0, j0, k0 = header.index_min
-    args = ["bricks", header.path, header.vdb_grid, i0, j0, k0, x, y, z]
-    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, args)],
+    argv = [command, header.path, header.vdb_grid, i0, j0, k0, x, y, z, *args]
+    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, argv)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
         def read(count: int) -> bytes:
             raw = proc.stdout.read(count)
@@ -161,17 +136,39 @@ def iter_vdb_bricks(header):
                       + (reason.splitlines()[-1] if reason else "stream ended early") + ")")
             return raw
         try:
-            for expected in range(-(-z // BRICK)):
-                row, n = np.frombuffer(read(8), dtype="<i4")
-                if row != expected or n < 0:
-                    _fail(header.path, f"reading grid values failed (row {row}, expected "
-                                       f"{expected})")
-                cols = np.frombuffer(read(8 * n), dtype="<i4").reshape(2, n).astype(np.intp)
-                blocks = np.frombuffer(read(4 * n * SIDE ** 3 * c), dtype="<f4")
-                yield int(row), (cols[0], cols[1]), blocks.reshape(n, SIDE, SIDE, SIDE, c)
+            yield read
         finally:
             if proc.poll() is None:
                 proc.kill()
+
+
+def iter_vdb_slabs(header, slab_bytes: int):
+    """Yield ``(z0, slab)``: float32 ``(k, Y, X, C)`` slabs of the header's box, read by
+    the worker and streamed through a pipe (one slab in memory at a time)."""
+    z, y, x, c = header.shape
+    per_slab = max(1, slab_bytes // (4 * x * y * c))
+    with _reader(header, "read", per_slab) as read:
+        for z0 in range(0, z, per_slab):
+            k = min(per_slab, z - z0)
+            raw = read(4 * k * y * x * c)
+            yield z0, np.frombuffer(raw, dtype="<f4").reshape(k, y, x, c)
+
+
+def iter_vdb_bricks(header):
+    """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
+    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker, which never holds
+    more than one row of the box; only stored bricks cross the pipe."""
+    from mitsuba_plugins.bricks import BRICK, SIDE
+    z, _, _, c = header.shape
+    with _reader(header, "bricks") as read:
+        for expected in range(-(-z // BRICK)):
+            row, n = np.frombuffer(read(8), dtype="<i4")
+            if row != expected or n < 0:
+                _fail(header.path, f"reading grid values failed (row {row}, expected "
+                                   f"{expected})")
+            cols = np.frombuffer(read(8 * n), dtype="<i4").reshape(2, n).astype(np.intp)
+            blocks = np.frombuffer(read(4 * n * SIDE ** 3 * c), dtype="<f4")
+            yield int(row), (cols[0], cols[1]), blocks.reshape(n, SIDE, SIDE, SIDE, c)
 
 
 def write_vdb(path, name: str, shape, index_to_world: np.ndarray, slabs) -> None:

@@ -118,6 +118,15 @@ def grid(filename=SMOKE, scale=8.0, albedo=0.85, to_world=None, **kw):
     return medium
 
 
+def medium_at(medium, method: str, points) -> np.ndarray:
+    """``medium.<method>(mei)`` (e.g. ``eval_sigma_t``, ``get_radiance``) at world
+    ``points`` (N x 3), as a (channels, N) array."""
+    points = np.asarray(points, dtype=np.float32)
+    mei = dr.zeros(mi.MediumInteraction3f, len(points))
+    mei.p = mi.Point3f(*(mi.Float(points[:, i]) for i in range(3)))
+    return np.array(getattr(medium, method)(mei))
+
+
 def segment(n):
     """``n`` copies of a fixed ray and the length of the segment tested along it."""
     o = mi.Point3f(-0.2, 0.13, 0.31)

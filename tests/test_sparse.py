@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from helpers import (SMOKE, SPARSE, assert_same_expectation, assert_same_render, camera,
-                     estimate, grid, media_scene, render)
+                     estimate, grid, media_scene, medium_at, render)
 from mitsuba_plugins import bricks, gridio
 
 GRID_MODULE = "mitsuba_plugins.media.grid_medium"
@@ -86,9 +86,7 @@ def _points(rng, to_world, n, shape):
 
 
 def sigma_t_at(medium, points) -> np.ndarray:
-    mei = dr.zeros(mi.MediumInteraction3f, len(points))
-    mei.p = mi.Point3f(*(mi.Float(points[:, i]) for i in range(3)))
-    return np.array(medium.eval_sigma_t(mei))
+    return medium_at(medium, "eval_sigma_t", points)
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])

@@ -9,12 +9,11 @@ import subprocess
 import sys
 import textwrap
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SMOKE, assert_same_expectation, camera, estimate, media_scene
+from helpers import SMOKE, assert_same_expectation, camera, estimate, media_scene, medium_at
 from mitsuba_plugins import cli, gridio, vdb
 
 
@@ -36,10 +35,7 @@ def make_vdb(path, *bodies: str, **arrays) -> dict:
 
 
 def sigma_t_at(medium, points) -> np.ndarray:
-    points = np.asarray(points, dtype=np.float64)
-    mei = dr.zeros(mi.MediumInteraction3f, len(points))
-    mei.p = mi.Point3f(*(points.T.astype(np.float32)))
-    return np.array(medium.eval_sigma_t(mei))[0]
+    return medium_at(medium, "eval_sigma_t", points)[0]
 
 
 def load_medium(path, **kw):
@@ -265,10 +261,7 @@ def test_convert_vol_to_npy_and_failures_leave_the_target(tmp_path, capsys):
 
 # -- emission_grid --------------------------------------------------------------------------
 def radiance_at(medium, points) -> np.ndarray:
-    points = np.asarray(points, dtype=np.float64)
-    mei = dr.zeros(mi.MediumInteraction3f, len(points))
-    mei.p = mi.Point3f(*(points.T.astype(np.float32)))
-    return np.array(medium.get_radiance(mei))
+    return medium_at(medium, "get_radiance", points)
 
 
 def test_emission_grid_multiplies_emission_where_its_transform_says(tmp_path):
