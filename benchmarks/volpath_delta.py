@@ -14,7 +14,7 @@
 3. Cost against sparsity: grids whose max/mean density rises from 1 to 100 at a fixed
    mean extinction; time per sample of both integrators relative to max/mean = 1, and
    null collisions per path. Ours are counted in our kernels
-   (``tracking.count_collisions``); Mitsuba's C++ cannot be instrumented, so its count
+   (``walk.count_collisions``); Mitsuba's C++ cannot be instrumented, so its count
    is that of the same tracking with one global majorant (volpath's) and ratio-tracked
    shadow rays (volpath's), counted in our kernel with ``majorant_resolution = 1``.
 
@@ -39,7 +39,7 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
 mi.set_variant(VARIANT)
-from mitsuba_plugins import output, stats, tracking  # noqa: E402  (needs a variant)
+from mitsuba_plugins import contract, estimators, output, stats, walk  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {"homogeneous_chromatic": 1.3, "sparse_smoke": 3.0, "dense_smooth": 1.0}
@@ -158,7 +158,7 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
     """Each transmittance estimator on one segment through a grid: mean, exp(-tau),
     variance and time per 2^20 estimates (compiled first)."""
     medium = mi.load_dict(grid_medium(path, 5.0))
-    tracker = tracking.MediumTracker(medium)
+    tracker = contract.MediumTracker(medium)
     o, d = mi.Point3f(-1.2, -0.3, -0.9), dr.normalize(mi.Vector3f(1.0, 0.4, 0.6))
     ray = mi.Ray3f(dr.zeros(mi.Point3f, n) + o, dr.zeros(mi.Vector3f, n) + d)
     steps, length = 100000, 4.0
@@ -169,13 +169,13 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
     inside = np.all((p >= -1) & (p <= 1), axis=0)
     tau = float((np.array(medium.eval_sigma_t(mei))[0] * inside).sum() * length / steps)
     out = {"exp_minus_tau": float(np.exp(-tau)), "tau": tau}
-    for method in tracking.TRANSMITTANCE_ESTIMATORS:
+    for method in estimators.TRANSMITTANCE_ESTIMATORS:
         times = []
         for seed in range(4):
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(seed, n)
             t0 = time.perf_counter()
-            T = tracking.transmittance(tracker, ray, mi.Float(length), sampler, method,
+            T = estimators.transmittance(tracker, ray, mi.Float(length), sampler, method,
                                        mi.Bool(True))
             dr.eval(T)
             dr.sync_thread()
@@ -210,18 +210,18 @@ def sparsity_series(res: int, spp: int, runs: int, tmp: Path, ratios) -> list:
         paths = spp * res * res
         for label, cells in (("ours", 16), ("builtin_estimate", 1)):
             # volpath's stand-in: one global majorant and no refinement of hot segments
-            refine = tracking.REFINE_OPTICAL_DEPTH
+            refine = contract.REFINE_OPTICAL_DEPTH
             if label == "builtin_estimate":
-                tracking.REFINE_OPTICAL_DEPTH = float("inf")
+                contract.REFINE_OPTICAL_DEPTH = float("inf")
             counted = mi.load_dict(_base(res, grid_medium(str(path), 2.0,
                                                           majorant_resolution=cells)))
-            tracking.REFINE_OPTICAL_DEPTH = refine
-            counters = tracking.count_collisions()
+            contract.REFINE_OPTICAL_DEPTH = refine
+            counters = walk.count_collisions()
             mi.render(counted, integrator=mi.load_dict(
                 {"type": "volpath_delta", "max_depth": MAX_DEPTH, "transmittance": "ratio"}),
                 spp=spp, seed=99)
             c = np.array(counters)
-            tracking.count_collisions(False)
+            walk.count_collisions(False)
             row[f"{label}_null_per_path"] = float(c.sum()) / paths
             row[f"{label}_null_free_flight_per_path"] = float(c[0]) / paths
         rows.append(row)
@@ -257,13 +257,13 @@ def markdown(result: dict) -> str:
               "", "| scene | ratio | residual | track_length |", "|---|---|---|---|"]
     for name, per in result["estimators_in_integrator"].items():
         lines.append(f"| {name} | " + " | ".join(f"{per[m]['efficiency_ratio']:.2f}x"
-                                              for m in tracking.TRANSMITTANCE_ESTIMATORS) + " |")
+                                              for m in estimators.TRANSMITTANCE_ESTIMATORS) + " |")
     lines += ["", "## Transmittance estimators alone (one segment, 2^20 estimates)", ""]
     for name, r in result["estimators_alone"].items():
         lines += [f"{name}: tau = {r['tau']:.3f}, exp(-tau) = {r['exp_minus_tau']:.5f}", "",
                   "| estimator | mean +- se | variance | time (s) | variance x time |",
                   "|---|---|---|---|---|"]
-        for m in tracking.TRANSMITTANCE_ESTIMATORS:
+        for m in estimators.TRANSMITTANCE_ESTIMATORS:
             e = r[m]
             lines.append(f"| {m} | {e['mean']:.5f} +- {e['se']:.5f} | {e['variance']:.3e} | "
                          f"{e['seconds']:.4f} | {e['variance'] * e['seconds']:.3e} |")
@@ -318,7 +318,7 @@ def main() -> None:
                 result["estimators_in_integrator"][name] = {
                     m: equal_time(scene, {"type": "volpath_delta", "max_depth": MAX_DEPTH,
                                           "transmittance": m}, builtin, args.spp, args.runs, ref)
-                    for m in tracking.TRANSMITTANCE_ESTIMATORS}
+                    for m in estimators.TRANSMITTANCE_ESTIMATORS}
         np.save(tmp / "sparse_like.npy", contrast_field(50.0))
         np.save(tmp / "dense.npy", smooth_field())
         result["estimators_alone"] = {

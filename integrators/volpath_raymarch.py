@@ -5,15 +5,15 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.integrators.volpath_delta import VolpathDelta, VolumeContext
-from mitsuba_plugins.marching import (STEP_MODES, Marcher, march_flight, march_single,
+from mitsuba_plugins.contract import medium_interaction
+from mitsuba_plugins.estimators import homogeneous_transmittance
+from mitsuba_plugins.marching import (STEP_MODES, Marcher, MarchedFlight, MarchedSingle,
                                       sample_cell_point)
-from mitsuba_plugins.mis import MIS
-from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
-from mitsuba_plugins.surface import RussianRoulette
-from mitsuba_plugins.tracking import (FreeFlight, SceneMedia, homogeneous_transmittance,
-                                      medium_interaction, shadow_transmittance)
-from mitsuba_plugins.validity import SampleGuard, refuse_gradients
+from mitsuba_plugins.params import PluginParameterError
+from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
+from mitsuba_plugins.validity import refuse_gradients
+from mitsuba_plugins.volumes import VolumetricIntegrator, analytic_flight
+from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
 
@@ -27,7 +27,7 @@ MAX_STEPS_PER_MARCH = 1e5
 DEFAULT_STEP_OPTICAL_DEPTH = 0.25
 
 
-class VolpathRaymarch(VolpathDelta):
+class VolpathRaymarch(VolumetricIntegrator):
     r"""
     .. _integrator-volpath_raymarch:
 
@@ -92,25 +92,36 @@ class VolpathRaymarch(VolpathDelta):
 
     render_forward, render_backward = refuse_gradients("volpath_raymarch", "prbvolpath")
 
-    ALLOWED = SAMPLING_INTEGRATOR_BASE + ("mode", "max_depth", "rr_depth", "step_size",
-                                          "step_mode", "step_optical_depth")
+    NAME = "volpath_raymarch"
+    PARAMETERS = ("mode", "step_size", "step_mode", "step_optical_depth")
 
-    def __init__(self, props: mi.Properties):
-        mi.SamplingIntegrator.__init__(self, props)
-        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
-        p = Params(props, "volpath_raymarch", self.ALLOWED)
+    def configure(self, p):
         self.mode = p.choice("mode", "multi", MODES)
-        self.max_depth = p.max_depth()
-        self.rr = RussianRoulette(rr_depth=p.rr_depth())
         self.step_size = p.float("step_size", DEFAULT_STEP_SIZE, lo=0.0, lo_open=True)
         self.step_mode = p.choice("step_mode", "fixed", STEP_MODES)
         self.step_optical_depth = p.float("step_optical_depth", DEFAULT_STEP_OPTICAL_DEPTH,
                                           lo=0.0, lo_open=True)
-        self.emitter_selection = "uniform"
-        self.mis = MIS("power", 2.0)
+        self.strategy = RayMarchingStrategy(self)
 
-    # -- the medium phase of volpath_delta's path loop, marched ---------------------
-    def shadow_method(self, media: SceneMedia) -> Marcher:
+    def to_string(self):
+        return (f"VolpathRaymarch[\n  mode = {self.mode},\n  step_mode = {self.step_mode},\n"
+                f"  step_size = {self.step_size:g},\n"
+                f"  step_optical_depth = {self.step_optical_depth:g},\n"
+                f"  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
+                f"  hide_emitters = {self.hide_emitters}\n]")
+
+
+class RayMarchingStrategy:
+    """The medium phase of ``volpath_raymarch``
+    (:class:`~mitsuba_plugins.volumes.VolumeStrategy`): marched flights, single
+    scattering or marched shadow rays in heterogeneous media; homogeneous media are never
+    marched."""
+
+    def __init__(self, settings: VolpathRaymarch):
+        self.mode, self.step_size = settings.mode, settings.step_size
+        self.step_mode, self.step_optical_depth = settings.step_mode, settings.step_optical_depth
+
+    def shadow_estimator(self, media: SceneMedia) -> Marcher:
         # Built at each render from the plugin's parameters; the steps are opaque.
         extent = media.extent()
         if media.heterogeneous and extent / self.step_size > MAX_STEPS_PER_MARCH:
@@ -122,58 +133,51 @@ class VolpathRaymarch(VolpathDelta):
                 "steps per march)")
         return Marcher(self.step_mode, self.step_size, self.step_optical_depth)
 
-    def gathers_medium_light(self, media: SceneMedia) -> bool:
+    def gathers_light(self, media: SceneMedia) -> bool:
         return self.mode == "single" or media.emission
 
-    def homogeneous_flight(self, flight: FreeFlight, ctx: VolumeContext, medium: mi.MediumPtr,
-                           ray: mi.Ray3f, t_max: mi.Float, nee: mi.Bool, active: mi.Bool):
+    def homogeneous_flight(self, ctx, medium, ray, t_max, flight, nee, active):
         if self.mode == "multi":
-            return super().homogeneous_flight(flight, ctx, medium, ray, t_max, nee, active)
+            return analytic_flight(ctx, medium, ray, t_max, flight, active)
         # Single scattering: the whole segment is one cell of known transmittance.
         sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
                                                                  active)
         sigma_t = mi.Spectrum(sigma_t)
         s, weight = sample_cell_point(sigma_t, t_max, ctx.sampler.next_1d(active),
-                                      ctx.media.spectral_homogeneous)
+                                      ctx.media.chromatic_homogeneous)
         mei = medium_interaction(ray, s)
         mei.medium = medium
         lit = active & nee
         flight.L_e[lit] += flight.beta * weight * mi.Spectrum(sigma_s) * \
-            self.in_scatter(ctx, medium, mei, lit)
+            in_scatter(ctx, medium, mei, lit)
         flight.beta[active] *= homogeneous_transmittance(sigma_t, t_max)
+        return flight
 
-    def heterogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
-                             t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
-                             nee: mi.Bool, active: mi.Bool) -> FreeFlight:
+    def heterogeneous_flight(self, ctx, tracker, ray, t_max, beta, r_u, nee, active):
         media = ctx.media
         if self.mode == "multi":
-            return media.call(medium, march_flight, ray, t_max, ctx.sampler, beta, r_u,
-                              ctx.hero, media.spectral, media.emission, ctx.method, active)
+            rule = MarchedFlight(ctx.estimator, beta, r_u, ctx.hero, media.chromatic_heterogeneous,
+                                 media.emission)
+        else:
+            def gather(medium, mei, active):
+                return in_scatter(ctx, medium, mei, active)
+            rule = MarchedSingle(ctx.estimator, beta, r_u, gather, media.chromatic_heterogeneous,
+                                 media.emission, nee)
+        return walk(tracker, ray, t_max, ctx.sampler, rule, active)
 
-        def in_scatter(medium, mei, active):
-            return self.in_scatter(ctx, medium, mei, active)
-        return media.call(medium, march_single, ray, t_max, ctx.sampler, beta, r_u, in_scatter,
-                          media.spectral, media.emission, ctx.method, nee, active)
 
-    def in_scatter(self, ctx: VolumeContext, medium: mi.MediumPtr,
-                   mei: mi.MediumInteraction3f, active: mi.Bool) -> mi.Spectrum:
-        """Light arriving at ``mei`` and scattered towards ``-ray``, per unit
-        ``sigma_s``: one emitter sample, ``p(w_l, -w) Le T / p_l`` (the phase function
-        and the emitter pdf that the classic single-scattering pseudocode drops)."""
-        ds, em_weight = ctx.emitters.sample_direction(mei, ctx.sampler.next_2d(active), active,
-                                                      test_visibility=False)
-        active = active & (ds.pdf != 0)
-        T = shadow_transmittance(ctx.scene, ctx.media, mei, ds, medium, ctx.sampler,
-                                 ctx.method, active)
-        phase_val, _ = medium.phase_function().eval_pdf(ctx.phase_ctx, mei, ds.d, active)
-        return dr.select(active, em_weight * T * mi.Spectrum(phase_val), 0.0)
-
-    def to_string(self):
-        return (f"VolpathRaymarch[\n  mode = {self.mode},\n  step_mode = {self.step_mode},\n"
-                f"  step_size = {self.step_size:g},\n"
-                f"  step_optical_depth = {self.step_optical_depth:g},\n"
-                f"  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
-                f"  hide_emitters = {self.hide_emitters}\n]")
+def in_scatter(ctx, medium: mi.MediumPtr, mei: mi.MediumInteraction3f,
+               active: mi.Bool) -> mi.Spectrum:
+    """Light arriving at ``mei`` and scattered towards ``-ray``, per unit ``sigma_s``:
+    one emitter sample, ``p(w_l, -w) Le T / p_l`` (the phase function and the emitter
+    pdf that the classic single-scattering pseudocode drops)."""
+    ds, em_weight = ctx.emitters.sample_direction(mei, ctx.sampler.next_2d(active), active,
+                                                  test_visibility=False)
+    active = active & (ds.pdf != 0)
+    T = shadow_transmittance(ctx.scene, ctx.media, mei, ds, medium, ctx.sampler,
+                             ctx.estimator, active)
+    phase_val, _ = medium.phase_function().eval_pdf(ctx.phase_ctx, mei, ds.d, active)
+    return dr.select(active, em_weight * T * mi.Spectrum(phase_val), 0.0)
 
 
 mi.register_integrator("volpath_raymarch", lambda props: VolpathRaymarch(props))

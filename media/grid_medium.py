@@ -334,7 +334,7 @@ class GridMedium(mi.Medium):
         """Can a ray cross a majorant cell with optical depth (bound x length) above
         tracking's REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
         diagonal."""
-        from mitsuba_plugins.tracking import REFINE_OPTICAL_DEPTH
+        from mitsuba_plugins.contract import REFINE_OPTICAL_DEPTH
         if self._voxels is None or not cells.size:
             return False
         linear = _world_linear(to_local)

@@ -8,6 +8,10 @@ is the closed-form integral of ``T(t) sigma_s`` over the cell. The only error is
 quadrature (midpoint) error of the optical depth, which shrinks with the step; it is
 measured in ``benchmarks/volpath_raymarch.py``.
 
+A march is the one walk (:func:`mitsuba_plugins.walk.walk`) with a cell iterator as
+its segments and a rule that treats each cell whole: :class:`MarchedTransmittance`,
+:class:`MarchedFlight` and :class:`MarchedSingle`.
+
 Cells (:class:`Marcher`):
 
 * ``fixed``: boundaries at ``tmin + (u + k) dt`` for a jitter ``u`` drawn per march, so
@@ -24,9 +28,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.contract import MediumTracker, index_channel, medium_interaction
+from mitsuba_plugins.estimators import FreeFlight, spectral_flight_weight
 from mitsuba_plugins.majorant import DDAState
-from mitsuba_plugins.tracking import (FreeFlight, MediumTracker, index_channel,
-                                      medium_interaction, spectral_flight_weight)
+from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
 
@@ -63,20 +68,20 @@ def _log1p(y):
     return dr.select(u == 1.0, y, dr.log(u) * y / dr.select(u == 1.0, 1.0, u - 1.0))
 
 
-def sample_cell_point(sigma_t: mi.Spectrum, length: mi.Float, u: mi.Float, spectral: bool):
+def sample_cell_point(sigma_t: mi.Spectrum, length: mi.Float, u: mi.Float, chromatic: bool):
     r"""A point ``s`` in a cell ``[0, length]`` of constant extinction for the in-scattering
     integral ``int_0^length T(s) g(s) ds``, and its weight ``T(s) / q(s)`` (per channel,
     ``T`` relative to the cell's start).
 
     Gray: ``q`` is the truncated exponential ``sigma_t e^{-sigma_t s} / (1 - e^{-sigma_t l})``
     and the weight is the constant ``cell_integral(sigma_t, l)``: the estimator is exact
-    when ``g`` is constant. Chromatic (``spectral``): a channel is picked uniformly (from
+    when ``g`` is constant. ``chromatic``: a channel is picked uniformly (from
     ``u``, which is then reused) and ``q`` is the mean of the channels' truncated
     exponentials (one-sample MIS, balance heuristic), so every weight is at most 3x that
     channel's own cell integral, whatever the extinction ratio.
     """
     n = dr.size_v(mi.Spectrum)
-    if spectral:
+    if chromatic:
         channel = mi.UInt32(dr.minimum(u * n, n - 1))
         u = u * n - mi.Float(channel)
         sigma = index_channel(sigma_t, channel)
@@ -87,7 +92,7 @@ def sample_cell_point(sigma_t: mi.Spectrum, length: mi.Float, u: mi.Float, spect
     a = dr.select(x < 1.0, x * exp_integral(x), 1.0 - dr.exp(-x))
     s = dr.select(x < 1e-6, u * length, -_log1p(-u * a) / dr.select(sigma > 0, sigma, 1.0))
     s = dr.minimum(dr.select(dr.isfinite(s), s, 0.0), length)
-    if not spectral:
+    if not chromatic:
         return s, mi.Spectrum(cell_integral(sigma, length))
     # q(s) = mean_c exp(-sigma_c s) / I_c with I_c the cell integral; exponents are
     # shifted by the smallest so a dense channel does not make 0/0.
@@ -97,94 +102,109 @@ def sample_cell_point(sigma_t: mi.Spectrum, length: mi.Float, u: mi.Float, spect
     return s, mi.Spectrum(rel / q)
 
 
-class FixedMarch:
-    """Loop state of a fixed-step march."""
-    DRJIT_STRUCT = {"t": mi.Float,          # start of the next cell
-                    "t_end": mi.Float,      # end of the march
+# -- cell iterators ------------------------------------------------------------------
+class FixedCellState:
+    """State of :class:`FixedCells`."""
+    DRJIT_STRUCT = {"t_end": mi.Float,      # end of the current cell
+                    "t_stop": mi.Float,     # end of the march
                     "boundary": mi.Float}   # next cell boundary of the jittered grid
 
-    def __init__(self, t=None, t_end=None, boundary=None):
-        self.t, self.t_end, self.boundary = t, t_end, boundary
+    def __init__(self, t_end=None, t_stop=None, boundary=None):
+        self.t_end, self.t_stop, self.boundary = t_end, t_stop, boundary
 
 
-class MajorantMarch:
-    """Loop state of a march whose steps follow the majorant grid."""
-    DRJIT_STRUCT = {"t": mi.Float,          # start of the next cell
-                    "t_end": mi.Float,      # end of the march
+class MajorantCellState:
+    """State of :class:`MajorantCells`."""
+    DRJIT_STRUCT = {"t_end": mi.Float,      # end of the current cell
                     "boundary": mi.Float,   # next cell boundary in this segment
                     "seg_end": mi.Float,    # end of the current majorant segment
                     "dt": mi.Float,         # step in this segment
                     "u": mi.Float,          # jitter of the cell grid
                     "dda": DDAState}        # walk through the majorant grid
 
-    def __init__(self, t=None, t_end=None, boundary=None, seg_end=None, dt=None, u=None,
-                 dda=None):
-        self.t, self.t_end, self.boundary, self.seg_end = t, t_end, boundary, seg_end
+    def __init__(self, t_end=None, boundary=None, seg_end=None, dt=None, u=None, dda=None):
+        self.t_end, self.boundary, self.seg_end = t_end, boundary, seg_end
         self.dt, self.u, self.dda = dt, u, dda
+
+
+def _cell_end(t0, boundary, end):
+    """End of the cell starting at ``t0``: the next boundary, at least a relative
+    :data:`MIN_RELATIVE_STEP` on, never past ``end``."""
+    t1 = dr.minimum(boundary, end)
+    return dr.minimum(dr.maximum(t1, t0 + t0 * MIN_RELATIVE_STEP), end)
+
+
+class FixedCells:
+    """Cell iterator of ``fixed`` marches: boundaries at ``t_in + (u + k) step_size``."""
+
+    def __init__(self, step_size: mi.Float):
+        self.step_size = step_size
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return self.start_at(tracker, ray, t_in, t_out, sampler.next_1d(active), active)
+
+    def start_at(self, tracker, ray, t_in, t_out, u, active):
+        """State with jitter ``u`` in [0, 1)."""
+        return FixedCellState(mi.Float(t_in), mi.Float(t_out), t_in + u * self.step_size)
+
+    def next(self, tracker, ray, state, t, active):
+        """The cell ``[t, state.t_end]`` that follows position ``t``: ``(active, state)``."""
+        t1 = _cell_end(t, state.boundary, state.t_stop)
+        boundary = dr.select(active & (t1 >= state.boundary), state.boundary + self.step_size,
+                             state.boundary)
+        return active, FixedCellState(dr.select(active, t1, state.t_end), state.t_stop, boundary)
+
+
+class MajorantCells:
+    """Cell iterator of ``majorant`` marches: each majorant segment cut into cells of
+    ``min(step_size, step_optical_depth / sigma_maj)``; an empty one is one cell."""
+
+    def __init__(self, step_size: mi.Float, step_optical_depth: mi.Float):
+        self.step_size, self.step_optical_depth = step_size, step_optical_depth
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return self.start_at(tracker, ray, t_in, t_out, sampler.next_1d(active), active)
+
+    def start_at(self, tracker, ray, t_in, t_out, u, active):
+        dda = tracker.grid.start(ray, t_in, t_out, active)
+        return MajorantCellState(mi.Float(t_in), mi.Float(t_in), mi.Float(t_in), mi.Float(0.0),
+                                 mi.Float(u), dda)
+
+    def next(self, tracker, ray, state, t, active):
+        fetch = active & (t >= state.seg_end)
+        _, seg_end, sigma_maj, _, dda = tracker.grid.next_bounds(state.dda, fetch,
+                                                                 minorant=False)
+        empty = sigma_maj <= 0
+        dt_new = dr.minimum(self.step_size,
+                            self.step_optical_depth / dr.select(empty, 1.0, sigma_maj))
+        seg_end = dr.select(fetch, seg_end, state.seg_end)
+        dt = dr.select(fetch, dr.select(empty, dr.inf, dt_new), state.dt)
+        boundary = dr.select(fetch, dr.select(empty, seg_end, t + state.u * dt_new),
+                             state.boundary)
+        t1 = _cell_end(t, boundary, seg_end)
+        boundary = dr.select(active & (t1 >= boundary), boundary + dt, boundary)
+        return active, MajorantCellState(dr.select(active, t1, state.t_end), boundary, seg_end,
+                                         dt, state.u, dda)
 
 
 class Marcher:
     """How a march cuts rays into cells: ``mode`` in :data:`STEP_MODES`, ``step_size``
     in world units, ``step_optical_depth`` (``majorant`` mode) in mean free paths of
-    the cell majorant. Built per render; the step values are opaque."""
+    the cell majorant. Built per render; the step values are opaque. A transmittance
+    estimator like those of :data:`mitsuba_plugins.estimators.TRANSMITTANCE_ESTIMATORS`."""
 
     def __init__(self, mode: str, step_size: float, step_optical_depth: float):
         self.mode = mode
         self.step_size = dr.opaque(mi.Float, step_size)
         self.step_optical_depth = dr.opaque(mi.Float, step_optical_depth)
+        self.cells = FixedCells(self.step_size) if mode == "fixed" else \
+            MajorantCells(self.step_size, self.step_optical_depth)
 
-    def start(self, tracker: MediumTracker, ray: mi.Ray3f, tmin, tmax, u: mi.Float, active):
-        """State for marching ``ray`` over ``[tmin, tmax]`` with jitter ``u`` in [0, 1)."""
-        if self.mode == "fixed":
-            return FixedMarch(mi.Float(tmin), mi.Float(tmax), tmin + u * self.step_size)
-        dda = tracker.grid.start(ray, tmin, tmax, active)
-        return MajorantMarch(mi.Float(tmin), mi.Float(tmax), mi.Float(tmin), mi.Float(tmin),
-                             mi.Float(0.0), mi.Float(u), dda)
-
-    def next(self, tracker: MediumTracker, state, active):
-        """The next cell ``(t0, t1, state)``; call while ``t1 < t_end`` of the last one."""
-        t0 = mi.Float(state.t)
-        if self.mode == "fixed":
-            dt = self.step_size
-            boundary = state.boundary
-        else:
-            fetch = active & (t0 >= state.seg_end)
-            _, seg_end, sigma_maj, _, dda = tracker.grid.next_bounds(state.dda, fetch,
-                                                                     minorant=False)
-            empty = sigma_maj <= 0
-            dt_new = dr.minimum(self.step_size,
-                                self.step_optical_depth / dr.select(empty, 1.0, sigma_maj))
-            state.dda = dda
-            state.seg_end = dr.select(fetch, seg_end, state.seg_end)
-            state.dt = dr.select(fetch, dr.select(empty, dr.inf, dt_new), state.dt)
-            boundary = dr.select(fetch, dr.select(empty, state.seg_end, t0 + state.u * dt_new),
-                                 state.boundary)
-            dt = state.dt
-        end = state.t_end if self.mode == "fixed" else state.seg_end
-        t1 = dr.minimum(boundary, end)
-        t1 = dr.minimum(dr.maximum(t1, t0 + t0 * MIN_RELATIVE_STEP), end)
-        state.boundary = dr.select(active & (t1 >= boundary), boundary + dt, boundary)
-        state.t = dr.select(active, t1, t0)
-        return t0, t1, state
-
-    @dr.syntax
     def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
                       sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
         """Marched transmittance ``exp(-sum sigma_t(mid) l)`` over ``[0, t_max]``: exact
         for the piecewise-constant medium; one random number (the jitter)."""
-        tmin, tmax = tracker.bounds(ray, t_max)
-        state = self.start(tracker, ray, tmin, tmax, sampler.next_1d(active), active)
-
-        # ------------------------------ loop state ------------------------------
-        tau = mi.Spectrum(0.0)                          # optical depth so far
-        active = mi.Bool(active) & (tmin < tmax)
-
-        while dr.hint(active, label="march_transmittance"):
-            t0, t1, state = self.next(tracker, state, active)
-            sigma_t = tracker.sigma_t(medium_interaction(ray, 0.5 * (t0 + t1)), active)
-            tau[active] += sigma_t * (t1 - t0)
-            active &= (t1 < tmax) & (dr.min(tau) < TAU_CUTOFF)
-        return dr.exp(-tau)
+        return walk(tracker, ray, t_max, sampler, MarchedTransmittance(self), active)
 
     def __repr__(self):
         return (f"{self.mode} (step_size {self.step_size[0]:g}"
@@ -192,11 +212,56 @@ class Marcher:
                    if self.mode == "majorant" else ")"))
 
 
-@dr.syntax
-def march_flight(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
-                 beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, spectral: bool,
-                 emission: bool, marcher: Marcher, active: mi.Bool) -> FreeFlight:
-    r"""Sample the next collision along ``ray`` in the marched (piecewise-constant) medium.
+# -- rules of the walk: whole cells -----------------------------------------------------
+class MarchRule:
+    """A rule that takes each cell of a march whole, with the coefficients at its
+    midpoint; the walk stops once every channel's optical depth passes TAU_CUTOFF."""
+    budget = None               # a march's work is bounded by its step (MAX_STEPS_PER_MARCH)
+
+    def __init__(self, marcher: Marcher):
+        self.segments = marcher.cells
+
+
+class OpticalDepth:
+    DRJIT_STRUCT = {"tau": mi.Spectrum}     # optical depth so far
+
+    def __init__(self, tau=None):
+        self.tau = tau
+
+
+class MarchedTransmittance(MarchRule):
+    """``tau += sigma_t(mid) l`` per cell; the result is ``exp(-tau)``."""
+    label = "march_transmittance"
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return OpticalDepth(mi.Spectrum(0.0))
+
+    def step(self, tracker, ray, sampler, cell, t, state, active):
+        t1 = cell.t_end
+        sigma_t = tracker.sigma_t(medium_interaction(ray, 0.5 * (t + t1)), active)
+        state.tau = dr.select(active, state.tau + sigma_t * (t1 - t), state.tau)
+        return dr.select(active, t1, t), state, active & (dr.min(state.tau) < TAU_CUTOFF)
+
+    def finish(self, t, state, t_out, entered):
+        return dr.exp(-state.tau)
+
+
+class FlightState:
+    DRJIT_STRUCT = {"tau_left": mi.Float,       # hero optical depth to the collision
+                    "tau": mi.Spectrum,         # optical depth so far (chromatic only)
+                    "sigma_t": mi.Spectrum,     # extinction at the collision
+                    "sigma_s": mi.Spectrum,     # scattering at the collision
+                    "Le": mi.Spectrum,          # emission at the collision
+                    "scattered": mi.Bool}       # collided in the medium
+
+    def __init__(self, tau_left=None, tau=None, sigma_t=None, sigma_s=None, Le=None,
+                 scattered=None):
+        self.tau_left, self.tau, self.sigma_t = tau_left, tau, sigma_t
+        self.sigma_s, self.Le, self.scattered = sigma_s, Le, scattered
+
+
+class MarchedFlight(MarchRule):
+    r"""The next collision in the marched (piecewise-constant) medium.
 
     One exponential optical depth is drawn and spent cell by cell, so a cell of optical
     depth ``tau_i`` holds the collision with probability ``1 - exp(-tau_i)`` given the
@@ -204,66 +269,70 @@ def march_flight(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler
     piecewise-constant medium, with no null collisions. At a collision the throughput
     takes the albedo ``sigma_s / sigma_t`` (absorption as a weight rather than a coin
     flip: same expectation, less variance). Chromatic extinction: the hero channel's
-    optical depth decides and :func:`~mitsuba_plugins.tracking.spectral_flight_weight`
-    weights the path over channels, as in homogeneous media.
-
-    With ``emission`` the medium's emission is collected at the collision (``beta
-    sigma_a Le / sigma_t``, whose expectation is ``int T sigma_a Le dt``).
+    optical depth decides and
+    :func:`~mitsuba_plugins.estimators.spectral_flight_weight` weights the path over
+    channels, as in homogeneous media. With ``emission`` the medium's emission is
+    collected at the collision (``beta sigma_a Le / sigma_t``, whose expectation is
+    ``int T sigma_a Le dt``). The walk returns a :class:`FreeFlight`.
     """
-    tmin, tmax = tracker.bounds(ray, t_max)
-    state = marcher.start(tracker, ray, tmin, tmax, sampler.next_1d(active), active)
-    entered = mi.Bool(active) & (tmin < tmax)
+    label = "march_flight"
 
-    # ------------------------------ loop state ------------------------------
-    tau_left = -dr.log(1.0 - sampler.next_1d(entered))  # hero optical depth to the collision
-    tau = mi.Spectrum(0.0)                               # optical depth so far (chromatic only)
-    t = mi.Float(tmin)                                   # position reached
-    sigma_t_c = mi.Spectrum(0.0)                         # extinction at the collision
-    sigma_s_c = mi.Spectrum(0.0)                         # scattering at the collision
-    Le_c = mi.Spectrum(0.0)                              # emission at the collision
-    scattered = mi.Bool(False)                           # collided in the medium
-    active = mi.Bool(entered)
+    def __init__(self, marcher, beta, r_u, hero, chromatic: bool, emission: bool):
+        super().__init__(marcher)
+        self.beta, self.r_u, self.hero = beta, r_u, hero
+        self.chromatic, self.emission = chromatic, emission
 
-    while dr.hint(active, label="march_flight"):
-        t0, t1, state = marcher.next(tracker, state, active)
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        entered = mi.Bool(active) & (t_in < t_out)
+        return FlightState(-dr.log(1.0 - sampler.next_1d(entered)), mi.Spectrum(0.0),
+                           mi.Spectrum(0.0), mi.Spectrum(0.0), mi.Spectrum(0.0), mi.Bool(False))
+
+    def step(self, tracker, ray, sampler, cell, t0, state, active):
+        t1 = cell.t_end
         sigma_t, sigma_s, Le = tracker.coefficients(
             medium_interaction(ray, 0.5 * (t0 + t1)), active)
-        sigma_h = sigma_t[0]
-        if dr.hint(spectral, mode="scalar"):
-            sigma_h = index_channel(sigma_t, hero)
+        sigma_h = index_channel(sigma_t, self.hero) if self.chromatic else sigma_t[0]
         cell_tau = sigma_h * (t1 - t0)
-        collide = active & (tau_left < cell_tau)
-        d = dr.select(collide, tau_left / dr.select(collide, sigma_h, 1.0), t1 - t0)
-        t[active] = t0 + d
-        if dr.hint(spectral, mode="scalar"):
-            tau[active] += sigma_t * d
-        tau_left[active & ~collide] = tau_left - cell_tau
-        sigma_t_c[collide] = sigma_t
-        sigma_s_c[collide] = sigma_s
-        if dr.hint(emission, mode="scalar"):
-            Le_c[collide] = Le
-        scattered |= collide
-        active &= ~collide & (t1 < tmax)
+        collide = active & (state.tau_left < cell_tau)
+        d = dr.select(collide, state.tau_left / dr.select(collide, sigma_h, 1.0), t1 - t0)
+        t = dr.select(collide, t0 + d, dr.select(active, t1, t0))
+        if self.chromatic:
+            state.tau = dr.select(active, state.tau + sigma_t * d, state.tau)
+        state.tau_left = dr.select(active & ~collide, state.tau_left - cell_tau, state.tau_left)
+        state.sigma_t = dr.select(collide, sigma_t, state.sigma_t)
+        state.sigma_s = dr.select(collide, sigma_s, state.sigma_s)
+        if self.emission:
+            state.Le = dr.select(collide, Le, state.Le)
+        state.scattered |= collide
+        return t, state, active & ~collide
 
-    if dr.hint(spectral, mode="scalar"):
-        weight, r_u_new = spectral_flight_weight(tau, sigma_t_c, scattered, r_u)
-        r_u = dr.select(entered, r_u_new, r_u)
-    else:
-        weight = mi.Spectrum(dr.select(scattered,
-                                       dr.rcp(dr.select(scattered, sigma_t_c[0], 1.0)), 1.0))
-    beta_flight = dr.select(entered, beta * weight, beta)
-    L_e = mi.Spectrum(0.0)
-    if dr.hint(emission, mode="scalar"):
-        L_e = dr.select(scattered, beta_flight * (sigma_t_c - sigma_s_c) * Le_c, 0.0)
-    beta = dr.select(scattered, beta_flight * sigma_s_c, beta_flight)
-    return FreeFlight(scattered, t, beta, r_u, L_e)
+    def finish(self, t, state, t_out, entered):
+        scattered, r_u = state.scattered, self.r_u
+        if self.chromatic:
+            weight, r_u_new = spectral_flight_weight(state.tau, state.sigma_t, scattered, r_u)
+            r_u = dr.select(entered, r_u_new, r_u)
+        else:
+            weight = mi.Spectrum(dr.select(
+                scattered, dr.rcp(dr.select(scattered, state.sigma_t[0], 1.0)), 1.0))
+        beta_flight = dr.select(entered, self.beta * weight, self.beta)
+        L_e = mi.Spectrum(0.0)
+        if self.emission:
+            L_e = dr.select(scattered, beta_flight * (state.sigma_t - state.sigma_s) * state.Le,
+                            0.0)
+        beta = dr.select(scattered, beta_flight * state.sigma_s, beta_flight)
+        return FreeFlight(scattered, t, beta, r_u, L_e)
 
 
-@dr.syntax
-def march_single(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
-                 beta: mi.Spectrum, r_u: mi.Spectrum, in_scatter, spectral: bool,
-                 emission: bool, marcher: Marcher, nee: mi.Bool, active: mi.Bool) -> FreeFlight:
-    r"""Single scattering along ``ray`` over ``[0, t_max]`` in the marched medium.
+class SingleState:
+    DRJIT_STRUCT = {"tau": mi.Spectrum,     # optical depth so far
+                    "L": mi.Spectrum}       # light gathered (per unit beta)
+
+    def __init__(self, tau=None, L=None):
+        self.tau, self.L = tau, L
+
+
+class MarchedSingle(MarchRule):
+    r"""Single scattering along the ray in the marched medium.
 
     Per cell of length ``l`` with midpoint coefficients, the light scattered once
     towards the ray, :math:`\int_{cell} T(t)\, \sigma_s\, L_s(t)\, dt`, is estimated with
@@ -274,36 +343,43 @@ def march_single(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler
     than enters the cell; the cell integral never does. With ``emission``, each cell
     adds ``T(t0) sigma_a Le`` times its cell integral.
 
-    Returns a :class:`~mitsuba_plugins.tracking.FreeFlight` that never scatters:
-    ``beta`` times the marched transmittance, and ``L_e``, the radiance gathered
-    (already times ``beta``). ``nee`` masks lanes allowed an emitter sample (depth).
+    The walk returns a :class:`FreeFlight` that never scatters: ``beta`` times the
+    marched transmittance, and ``L_e``, the radiance gathered (already times ``beta``).
+    ``nee`` masks lanes allowed an emitter sample (depth).
     """
-    tmin, tmax = tracker.bounds(ray, t_max)
-    state = marcher.start(tracker, ray, tmin, tmax, sampler.next_1d(active), active)
-    medium = mi.MediumPtr(tracker.medium)
+    label = "march_single"
 
-    # ------------------------------ loop state ------------------------------
-    tau = mi.Spectrum(0.0)                              # optical depth so far
-    L = mi.Spectrum(0.0)                                # light gathered (per unit beta)
-    active = mi.Bool(active) & (tmin < tmax)
+    def __init__(self, marcher, beta, r_u, in_scatter, chromatic: bool, emission: bool,
+                 nee: mi.Bool):
+        super().__init__(marcher)
+        self.beta, self.r_u, self.in_scatter, self.nee = beta, r_u, in_scatter, nee
+        self.chromatic, self.emission = chromatic, emission
 
-    while dr.hint(active, label="march_single"):
-        t0, t1, state = marcher.next(tracker, state, active)
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return SingleState(mi.Spectrum(0.0), mi.Spectrum(0.0))
+
+    def step(self, tracker, ray, sampler, cell, t0, state, active):
+        t1 = cell.t_end
         length = t1 - t0
         sigma_t, sigma_s, Le = tracker.coefficients(
             medium_interaction(ray, 0.5 * (t0 + t1)), active)
-        T0 = dr.exp(-tau)
+        T0 = dr.exp(-state.tau)
 
-        # --------------- one emitter sample from a point in the cell ---------------
-        s, weight = sample_cell_point(sigma_t, length, sampler.next_1d(active), spectral)
-        lit = active & nee & dr.any(sigma_s > 0)
+        # one emitter sample from a point in the cell
+        s, weight = sample_cell_point(sigma_t, length, sampler.next_1d(active), self.chromatic)
+        lit = active & self.nee & dr.any(sigma_s > 0)
+        medium = mi.MediumPtr(tracker.medium)
         mei = medium_interaction(ray, t0 + s)
         mei.medium = medium
-        L[lit] += T0 * weight * sigma_s * in_scatter(medium, mei, lit)
-        if dr.hint(emission, mode="scalar"):
-            L[active] += T0 * (sigma_t - sigma_s) * Le * cell_integral(sigma_t, length)
+        L = dr.select(lit, state.L + T0 * weight * sigma_s * self.in_scatter(medium, mei, lit),
+                      state.L)
+        if self.emission:
+            L = dr.select(active, L + T0 * (sigma_t - sigma_s) * Le * cell_integral(sigma_t, length),
+                          L)
+        state.L = L
+        state.tau = dr.select(active, state.tau + sigma_t * length, state.tau)
+        return dr.select(active, t1, t0), state, active & (dr.min(state.tau) < TAU_CUTOFF)
 
-        tau[active] += sigma_t * length
-        active &= (t1 < tmax) & (dr.min(tau) < TAU_CUTOFF)
-
-    return FreeFlight(mi.Bool(False), mi.Float(tmax), beta * dr.exp(-tau), r_u, beta * L)
+    def finish(self, t, state, t_out, entered):
+        return FreeFlight(mi.Bool(False), mi.Float(t_out), self.beta * dr.exp(-state.tau),
+                          self.r_u, self.beta * state.L)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from helpers import SMOKE, SPARSE, camera, exact_optical_depth, grid, media_scene
-from mitsuba_plugins import marching, stats, tracking
+from mitsuba_plugins import contract, marching, stats
 
 
 def test_exp_integral_and_cell_integral():
@@ -58,13 +58,16 @@ def test_cell_point_extreme_channels_are_finite():
 def _cells(marcher, tracker, ray, t_max, u, max_cells=4096):
     """All cells ``(n, 2)`` of one march (one ray), recorded from a symbolic loop."""
     tmin, tmax = tracker.bounds(ray, mi.Float(t_max))
-    state = marcher.start(tracker, ray, tmin, tmax, mi.Float(u), mi.Bool(True))
+    state = marcher.cells.start_at(tracker, ray, tmin, tmax, mi.Float(u), mi.Bool(True))
+    t = mi.Float(tmin)
     t0s = dr.zeros(mi.Float, max_cells)
     t1s = dr.zeros(mi.Float, max_cells)
     count = mi.UInt32(0)
     active = mi.Bool(tmin < tmax)
     while dr.hint(active, label="record_cells"):
-        t0, t1, state = marcher.next(tracker, state, active)
+        _, state = marcher.cells.next(tracker, ray, state, t, active)
+        t0, t1 = mi.Float(t), mi.Float(state.t_end)
+        t = dr.select(active, t1, t)
         dr.scatter(t0s, t0, count, active)
         dr.scatter(t1s, t1, count, active)
         count += 1
@@ -76,7 +79,7 @@ def _cells(marcher, tracker, ray, t_max, u, max_cells=4096):
 @pytest.mark.parametrize("mode", marching.STEP_MODES)
 def test_cells_tile_the_segment(mode):
     medium = mi.load_dict(grid(filename=SPARSE, scale=20.0))
-    tracker = tracking.MediumTracker(medium)
+    tracker = contract.MediumTracker(medium)
     rng = np.random.default_rng(11)
     marcher = marching.Marcher(mode, 0.05, 0.2)
     for _ in range(20):
@@ -97,7 +100,7 @@ def test_majorant_mode_crosses_empty_space_in_one_step(tmp_path):
     data = np.zeros((16, 16, 16), np.float32)
     data[6:10, 6:10, 6:10] = 50.0
     np.save(tmp_path / "block.npy", data)
-    tracker = tracking.MediumTracker(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
+    tracker = contract.MediumTracker(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
                                                        scale=1.0)))
     ray = mi.Ray3f(mi.Point3f(-3, 0.01, 0.02), mi.Vector3f(1, 0, 0))
     cells, tmin, tmax = _cells(marching.Marcher("majorant", 0.05, 0.25), tracker, ray, 10.0, 0.5)
@@ -129,7 +132,7 @@ def _marched(medium, marcher, n=1 << 18, seed=0):
     ray, length = _smoke_segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T = marcher.transmittance(tracking.MediumTracker(medium), ray, mi.Float(length), sampler,
+    T = marcher.transmittance(contract.MediumTracker(medium), ray, mi.Float(length), sampler,
                               mi.Bool(True))
     return np.array(T)
 

@@ -21,7 +21,7 @@ import pytest
 
 from helpers import (SCENES, assert_same_expectation, camera, estimate, grid, media_scene,
                      render)
-from mitsuba_plugins import cli, compare as cmp, gridio, output, tracking
+from mitsuba_plugins import cli, compare as cmp, contract, gridio, output, scene_media, walk
 
 ROOT = Path(__file__).resolve().parents[1]
 CORNELL = str(SCENES / "cornell_box.xml")
@@ -195,7 +195,7 @@ def _tracker(tmp_path, interpolation, value=1e8):
     path = tmp_path / "v.npy"
     np.save(path, data)
     medium = mi.load_dict(grid(filename=str(path), scale=1.0, interpolation=interpolation))
-    return tracking.MediumTracker(medium), medium
+    return contract.MediumTracker(medium), medium
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
@@ -212,7 +212,7 @@ def test_refined_pieces_bound_the_extinction(tmp_path, interpolation):
     t = dr.lerp(tmin, tmax, mi.Float(rng.uniform(0, 1, n)))
     dda = tracker.grid.start(ray, tmin, tmax)
     sigma_cell = mi.Float(medium.global_majorant)
-    t1, bound = tracker.piece(ray, dda, t, tmax, sigma_cell, tmax > tmin)
+    t1, bound = walk.refined_piece(tracker, ray, dda, t, tmax, sigma_cell, tmax > tmin)
     t_np, t1_np, tmax_np = (np.array(x) for x in (t, t1, tmax))
     inside = tmax_np > np.array(tmin)
     assert np.all(t1_np[inside] > t_np[inside]) and np.all(t1_np <= tmax_np)
@@ -231,19 +231,19 @@ def _smoke(monkeypatch, refine: float | None):
     """The smoke grid; with ``refine`` as the hot-segment threshold (its segments reach
     optical depth 1.3, so 0.5 makes every grid cell hot: refined and budgeted)."""
     if refine is not None:
-        monkeypatch.setattr(tracking, "REFINE_OPTICAL_DEPTH", refine)
+        monkeypatch.setattr(contract, "REFINE_OPTICAL_DEPTH", refine)
     return media_scene(grid(), sensor=camera(res=16))
 
 
 def test_only_hot_media_carry_refinement(monkeypatch):
     """Model only what a scene needs: our scenes' grids have no hot cell, so their kernels
     hold neither refinement nor work budget (both cost 4-6% when traced)."""
-    medium = [m for m in tracking.scene_media(_smoke(monkeypatch, None)) if
+    medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, None)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is None and not tracking.MediumTracker(medium).hot
-    medium = [m for m in tracking.scene_media(_smoke(monkeypatch, 0.5)) if
+    assert medium.refinement is None and not contract.MediumTracker(medium).hot
+    medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, 0.5)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is not None and tracking.MediumTracker(medium).hot
+    assert medium.refinement is not None and contract.MediumTracker(medium).hot
 
 
 @pytest.mark.parametrize("method", ["track_length", "ratio", "residual"])
@@ -273,7 +273,7 @@ def test_work_budget_roulette_is_unbiased(method, monkeypatch):
     reference = estimate(_smoke(monkeypatch, None), spec, passes=16, spp=32, seed=0)
     scene = _smoke(monkeypatch, 0.5)
     same_seed = render(scene, spec, spp=32, seed=3)
-    monkeypatch.setattr(tracking, "WORK_BUDGET", 24)
+    monkeypatch.setattr(walk, "WORK_BUDGET", 24)
     candidate = estimate(scene, spec, passes=16, spp=32, seed=5000)
     changed = np.abs(render(scene, spec, spp=32, seed=3) - same_seed) > 1e-5
     assert changed[..., 0].mean() > 0.1, "the budget roulette was hardly played"

@@ -22,7 +22,7 @@ import pytest
 from helpers import (HARD_MEDIA as HARD, RES, SPARSE, assert_same_expectation, camera,
                      emissive_slab, estimate, exact_optical_depth, grid, homogeneous, load,
                      media_scene, render, segment)
-from mitsuba_plugins import stats, tracking
+from mitsuba_plugins import contract, estimators, scene_media, stats
 
 DEPTH = 8
 
@@ -197,16 +197,16 @@ def random_grid(tmp_path_factory):
 
 
 def transmittance_samples(medium, method, n=1 << 16, seed=0):
-    tracker = tracking.MediumTracker(medium)
+    tracker = contract.MediumTracker(medium)
     ray, length = segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T = tracking.transmittance(tracker, ray, mi.Float(length), sampler, method, mi.Bool(True))
+    T = estimators.transmittance(tracker, ray, mi.Float(length), sampler, method, mi.Bool(True))
     dr.eval(T)
     return np.array(T)
 
 
-@pytest.mark.parametrize("method", tracking.TRANSMITTANCE_ESTIMATORS)
+@pytest.mark.parametrize("method", estimators.TRANSMITTANCE_ESTIMATORS)
 def test_transmittance_estimators_are_unbiased(random_grid, method):
     """Mean of 65536 estimates equals exp(-tau) per channel (t-test, alpha 1e-3)."""
     expected = np.exp(-exact_optical_depth(random_grid))
@@ -234,7 +234,7 @@ def test_homogeneous_free_flight_weights_are_finite_for_extreme_channels():
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(0, n)
     hero = mi.UInt32(dr.minimum(sampler.next_1d() * 3, 2))
-    t, scattered, weight, r_u = tracking.homogeneous_free_flight(
+    t, scattered, weight, r_u = estimators.homogeneous_free_flight(
         sigma_t, mi.Float(1.0), sampler.next_1d(), True, hero, mi.Spectrum(1.0))
     w, r = np.array(weight), np.array(r_u)
     assert np.isfinite(w).all() and (w >= 0).all()
@@ -250,7 +250,7 @@ def test_homogeneous_free_flight_is_unbiased(t_max):
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(1, n)
     hero = mi.UInt32(dr.minimum(sampler.next_1d() * 3, 2))
-    _, scattered, weight, _ = tracking.homogeneous_free_flight(
+    _, scattered, weight, _ = estimators.homogeneous_free_flight(
         mi.Spectrum(*sigma), mi.Float(t_max), sampler.next_1d(), True, hero, mi.Spectrum(1.0))
     w = np.where(np.array(scattered), np.array(weight) * np.array(sigma)[:, None],
                  np.array(weight))
@@ -272,15 +272,15 @@ def test_without_media_it_is_path_rr():
 def test_kernel_is_specialised_to_the_scene():
     """What SceneMedia derives decides which loops exist: no tracking loop for
     homogeneous-only scenes, no spectral MIS for gray media, no emission code."""
-    gray = tracking.SceneMedia(media_scene(homogeneous(1.0)))
+    gray = scene_media.SceneMedia(media_scene(homogeneous(1.0)))
     assert gray.any and gray.homogeneous and not gray.heterogeneous
-    assert not gray.spectral_homogeneous
-    chroma = tracking.SceneMedia(media_scene(homogeneous([0.1, 0.5, 1.0])))
-    assert chroma.spectral_homogeneous and not chroma.heterogeneous
-    smoke = tracking.SceneMedia(load("smoke", res=8))
-    assert smoke.heterogeneous and not smoke.spectral and not smoke.emission
-    assert tracking.SceneMedia(load("chromatic", res=8)).spectral
-    assert not tracking.SceneMedia(load("cornell_box", res=8)).any
+    assert not gray.chromatic_homogeneous
+    chroma = scene_media.SceneMedia(media_scene(homogeneous([0.1, 0.5, 1.0])))
+    assert chroma.chromatic_homogeneous and not chroma.heterogeneous
+    smoke = scene_media.SceneMedia(load("smoke", res=8))
+    assert smoke.heterogeneous and not smoke.chromatic_heterogeneous and not smoke.emission
+    assert scene_media.SceneMedia(load("chromatic", res=8)).chromatic_heterogeneous
+    assert not scene_media.SceneMedia(load("cornell_box", res=8)).any
 
 
 def test_tracking_code_is_traced_only_when_needed(monkeypatch):
@@ -288,12 +288,14 @@ def test_tracking_code_is_traced_only_when_needed(monkeypatch):
     spectral-MIS branch; a gray grid scene builds tracking without spectral MIS."""
     from mitsuba_plugins.integrators import volpath_delta
     calls = []
-    original = volpath_delta.delta_tracking
+    original = volpath_delta.walk
 
     def spy(*args):
-        calls.append(args[7])  # the `spectral` flag
+        rule = args[4]
+        if isinstance(rule, estimators.DeltaTracking):
+            calls.append(rule.chromatic)
         return original(*args)
-    monkeypatch.setattr(volpath_delta, "delta_tracking", spy)
+    monkeypatch.setattr(volpath_delta, "walk", spy)
     integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 4})
     mi.render(media_scene(homogeneous([0.1, 0.5, 1.0]), sensor=camera(res=4)),
               integrator=integrator, spp=1)
@@ -317,7 +319,7 @@ def test_parameters():
 
 # -- hard cases --------------------------------------------------------------------------------
 @pytest.mark.parametrize("case", list(HARD))
-@pytest.mark.parametrize("method", tracking.TRANSMITTANCE_ESTIMATORS)
+@pytest.mark.parametrize("method", estimators.TRANSMITTANCE_ESTIMATORS)
 def test_hard_cases_render_finite(case, method, tmp_path):
     scene = media_scene(HARD[case](tmp_path), sensor=camera(res=16))
     img = render(scene, {"type": "volpath_delta", "transmittance": method, "max_depth": 12},

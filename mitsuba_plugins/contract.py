@@ -1,0 +1,145 @@
+"""The medium contract: what our integrators ask of a medium (docs/architecture.md rule 2).
+
+* :class:`TrackedMedium`: the protocol a medium of ours offers (``grid_medium``);
+* :class:`MediumTracker`: the one adapter through which the walks
+  (:mod:`mitsuba_plugins.walk`) see any heterogeneous medium, ours or Mitsuba's;
+* :func:`medium_interaction`: the interaction at a point of a ray, for lookups.
+
+Distances are ray parameters ``t``; rays handed to a tracker have unit direction, so
+``t`` is a length and the pdfs are per unit length.
+"""
+from __future__ import annotations
+
+from typing import Optional, Protocol
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_plugins.majorant import MajorantGrid
+
+VARIANT = mi.variant()
+
+#: A majorant segment of optical depth (sigma_maj x length) above this is *hot*: walked
+#: in pieces with tighter bounds (:func:`mitsuba_plugins.walk.refined_piece`); below it,
+#: plain tracking takes at most this many tentative collisions per segment on average,
+#: which is cheaper than pieces (each costs a lookup): at 16 the benchmark's max/mean-100
+#: grid (cells of optical depth 43) was refined and its time per sample rose 1.37x over
+#: max/mean 30 with the same collision counts. Our scenes' segments stay below 7
+#: (sparse.xml); the hard cases of 1e4 (optical depth ~2000) and beyond are refined.
+#: Read at trace time (tests and benchmarks change it).
+REFINE_OPTICAL_DEPTH = 256.0
+
+
+class TrackedMedium(Protocol):
+    """The contract between a medium and our integrators' walks.
+
+    A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
+
+    * ``majorant_grid``: a :class:`~mitsuba_plugins.majorant.MajorantGrid` whose segments
+      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py);
+    * ``refinement``: ``(voxels per local unit, trilinear)`` when a segment can be hot
+      (see :func:`mitsuba_plugins.walk.refined_piece`), else None;
+    * ``eval_sigma_t(mei, active)``, ``eval_albedo(mei, active)`` and
+      ``get_radiance(mei, active)`` (``Le``; 0 without emission), per channel;
+    * ``has_emission``, ``is_chromatic`` (extinction differs between channels) and
+      ``bbox`` (world bounds), plus Mitsuba's ``intersect_aabb``.
+
+    Any other medium (Mitsuba's ``heterogeneous``) is tracked through Mitsuba's own
+    interface alone: one global majorant and ``get_scattering_coefficients``.
+    """
+    PROVIDES_TRACKING: bool
+    majorant_grid: MajorantGrid
+    refinement: Optional[tuple]
+    has_emission: bool
+    is_chromatic: bool
+
+    def eval_sigma_t(self, mei, active): ...
+
+    def eval_albedo(self, mei, active): ...
+
+    def get_radiance(self, mei, active): ...
+
+
+def diagonal(bbox) -> float:
+    """Length of a bounding box's diagonal."""
+    return float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min)))
+
+
+class MediumTracker:
+    """What the walks need from one heterogeneous medium: its majorant grid (the
+    per-cell bounds of a :class:`TrackedMedium`, or one global majorant for any other
+    medium, e.g. Mitsuba's ``heterogeneous``), its bounds and its coefficients."""
+
+    def __init__(self, medium: mi.Medium, extent: float = np.inf):
+        self.medium = medium
+        self.is_grid = bool(getattr(medium, "PROVIDES_TRACKING", False))
+        self.has_emission = bool(medium.has_emission) if self.is_grid else False
+        #: extinction differs between channels (Mitsuba's media: as they declare)
+        self.is_chromatic = bool(medium.is_chromatic) if self.is_grid else \
+            medium.has_spectral_extinction()
+        #: diagonal of the medium's world box (None: unbounded, as Mitsuba's media say)
+        self.diagonal = diagonal(medium.bbox) if self.is_grid else None
+        #: (voxels per local unit on each axis, interpolation) of a grid whose hot
+        #: segments are refined; None: no refinement
+        self.voxels = medium.refinement if self.is_grid else None
+        #: ``hot``: a segment can hold more than REFINE_OPTICAL_DEPTH tentative
+        #: collisions, so a crossing's work is not bounded by construction and the walk
+        #: keeps a work budget (``extent``: the longest stretch a ray can travel)
+        if self.is_grid:
+            self.grid = medium.majorant_grid
+            self.hot = self.voxels is not None
+        else:
+            # One segment over the whole ray: a 1-cell grid whose value equals the
+            # global majorant inside and outside. Read back once per render.
+            majorant = medium.get_majorant(dr.zeros(mi.MediumInteraction3f))
+            value = float(np.max(np.asarray(majorant)))
+            self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
+                                     mi.ScalarTransform4f(), value)
+            self.hot = value * extent > REFINE_OPTICAL_DEPTH
+
+    def bounds(self, ray: mi.Ray3f, t_max: mi.Float):
+        """``(t_in, t_out)``: the ray's stretch inside the medium's box, clipped to
+        ``[0, t_max]`` (empty, ``t_in == t_out``, where it misses)."""
+        hit, t0, t1 = self.medium.intersect_aabb(ray)
+        t_in = dr.clip(t0, 0.0, t_max)
+        t_out = dr.clip(t1, 0.0, t_max)
+        return t_in, dr.select(hit & (t_in < t_out), t_out, t_in)
+
+    def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
+        if self.is_grid:
+            return mi.Spectrum(self.medium.eval_sigma_t(mei, active))
+        _, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
+        return mi.Spectrum(sigma_t)
+
+    def coefficients(self, mei: mi.MediumInteraction3f, active):
+        """``(sigma_t, sigma_s, Le)`` at ``mei.p`` (``Le`` is 0 without emission)."""
+        if self.is_grid:
+            sigma_t = mi.Spectrum(self.medium.eval_sigma_t(mei, active))
+            sigma_s = sigma_t * mi.Spectrum(self.medium.eval_albedo(mei, active))
+            if self.has_emission:
+                return sigma_t, sigma_s, mi.Spectrum(self.medium.get_radiance(mei, active))
+            return sigma_t, sigma_s, mi.Spectrum(0.0)
+        sigma_s, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
+        return mi.Spectrum(sigma_t), mi.Spectrum(sigma_s), mi.Spectrum(0.0)
+
+    def gray_sigma_t(self, ray: mi.Ray3f, t: mi.Float, active) -> mi.Float:
+        """Largest channel of the extinction at ``ray(t)``."""
+        return dr.max(self.sigma_t(medium_interaction(ray, t), active))
+
+
+def medium_interaction(ray: mi.Ray3f, t: mi.Float) -> mi.MediumInteraction3f:
+    """A medium interaction at ``ray(t)`` (coefficient lookups, phase functions)."""
+    mei = dr.zeros(mi.MediumInteraction3f)
+    mei.t = t
+    mei.p = ray(t)
+    mei.wi = -ray.d
+    mei.sh_frame = mi.Frame3f(mei.wi)
+    mei.time = ray.time
+    mei.wavelengths = ray.wavelengths
+    return mei
+
+
+def index_channel(spec, channel: mi.UInt32) -> mi.Float:
+    """``spec[channel]`` per lane for a 3-channel spectrum."""
+    return dr.select(channel == 0, spec[0], dr.select(channel == 1, spec[1], spec[2]))

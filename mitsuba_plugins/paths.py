@@ -1,0 +1,130 @@
+"""The path tracers' shared base and surface path loop.
+
+:class:`PathIntegrator` parses the parameters every path tracer of ours shares, once
+(as Mitsuba's ``ADIntegrator`` does), and owns ``sample``; a plugin adds its own
+parameters in :meth:`PathIntegrator.configure` and its loop in :meth:`PathIntegrator.trace`.
+The volumetric integrators extend it in :mod:`mitsuba_plugins.volumes`.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.mis import MIS
+from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
+from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission_mis,
+                                     emitter_contribution, sample_emitter)
+from mitsuba_plugins.validity import SampleGuard
+
+VARIANT = mi.variant()
+
+
+class PathIntegrator(mi.SamplingIntegrator):
+    """Base of ``path_rr``, ``volpath_delta`` and ``volpath_raymarch``.
+
+    Subclasses set ``NAME`` (the plugin name, used in messages), ``PARAMETERS`` (their
+    own parameter names; ``max_depth``, ``rr_depth`` and Mitsuba's sampling-integrator
+    parameters are always allowed) and ``render_forward`` / ``render_backward``
+    (:func:`mitsuba_plugins.validity.refuse_gradients`).
+    """
+    NAME = "path"
+    PARAMETERS: tuple = ()
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
+        p = Params(props, self.NAME,
+                   SAMPLING_INTEGRATOR_BASE + ("max_depth", "rr_depth") + self.PARAMETERS)
+        self.max_depth = p.max_depth()
+        self.rr = RussianRoulette(rr_depth=p.rr_depth())
+        self.emitter_selection = "uniform"
+        self.mis = MIS("power", 2.0)
+        self.configure(p)
+
+    def configure(self, p: Params) -> None:
+        """Read the plugin's own parameters (``self.PARAMETERS``) from ``p``."""
+
+    def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
+               medium: mi.Medium = None, active: mi.Bool = True):
+        if self.max_depth == 0:
+            return mi.Spectrum(0.0), mi.Bool(False), []
+        L, valid_ray = self.trace(scene, sampler, ray, medium, active)
+        return self.sample_guard(L, active), valid_ray, []
+
+    def trace(self, scene, sampler, ray, medium, active):
+        """``(L, valid_ray)`` of one sample."""
+        return trace_surfaces(self, scene, sampler, ray, active)
+
+
+@dr.syntax
+def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+                   active: mi.Bool):
+    """The surface path loop of ``path_rr`` (and of the volumetric integrators in a
+    scene without media): ``(L, valid_ray)``. ``integrator`` supplies the settings
+    (``max_depth``, ``rr``, ``mis``, ``emitter_selection``, ``hide_emitters``)."""
+    emitters = EmitterSelection(scene, integrator.emitter_selection)
+    bsdf_ctx = mi.BSDFContext()
+    max_depth = depth_limit(integrator.max_depth)
+
+    # ------------------------------ loop state ------------------------------
+    ray = mi.Ray3f(ray)                              # current ray
+    L = mi.Spectrum(0.0)                             # radiance estimate
+    beta = mi.Spectrum(1.0)                          # path throughput
+    eta = mi.Float(1.0)                              # product of IOR ratios (for roulette)
+    depth = mi.UInt32(0)                             # path vertices so far
+    valid_ray = mi.Bool(not integrator.hide_emitters  # alpha: hit something or sees env
+                        and scene.environment() is not None)
+    prev_si = dr.zeros(mi.Interaction3f)             # previous vertex (MIS reference)
+    prev_pdf = mi.Float(1.0)                         # p_b of the direction that led here
+    prev_delta = mi.Bool(True)                       # ... drawn from a delta lobe (camera: yes)
+    active = mi.Bool(active)                         # lanes still tracing
+    pi = scene.ray_intersect_preliminary(ray, coherent=True, reorder=False, active=active)
+
+    if dr.hint(integrator.hide_emitters, mode="scalar"):
+        # Camera rays see through area emitters, as in Mitsuba's `path`.
+        skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
+        si_skip = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
+        pi[skip] = integrator.skip_area_emitters(scene, si_skip.spawn_ray(ray.d), True, skip)
+
+    while dr.hint(active, label="path_rr"):
+        # ------------------------------ intersect ------------------------------
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+
+        # ------------------------ emission with MIS ------------------------
+        L = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
+                                      prev_pdf, prev_delta), L)
+        active_next = (depth + 1 < max_depth) & si.is_valid()
+        bsdf = si.bsdf(ray)
+
+        # ------------------------ emitter sampling ------------------------
+        active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        ds, em_weight, wo, active_em = sample_emitter(emitters, si, sampler.next_2d(), active_em)
+
+        # --------------------------- BSDF sampling ---------------------------
+        u1 = sampler.next_1d()
+        u2 = sampler.next_2d()
+        bsdf_val, p_b, bs, bsdf_weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, u1, u2)
+        L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight, wo,
+                                                         bsdf_val, p_b), L)
+
+        # ------------------------- throughput update -------------------------
+        bsdf_weight = si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        beta *= bsdf_weight
+        eta *= bs.eta
+        valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+        prev_si = mi.Interaction3f(si)
+        prev_pdf = bs.pdf
+        prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+
+        # ------------------------- Russian roulette -------------------------
+        depth[si.is_valid()] += 1
+        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d())
+
+        # ------------------------------ advance ------------------------------
+        active = active_next & alive
+        pi = scene.ray_intersect_preliminary(ray, coherent=False,
+                                             reorder=dr.flag(dr.JitFlag.LoopRecord),
+                                             active=active)
+
+    return dr.select(valid_ray, L, 0.0), valid_ray

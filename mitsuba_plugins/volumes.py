@@ -1,0 +1,220 @@
+"""The volumetric path loop and its medium phase (docs/method.md sections 6-10).
+
+:func:`trace_volumes` is the one path loop of ``volpath_delta`` and ``volpath_raymarch``.
+What happens while a ray crosses a medium is a *strategy* object handed to it
+(:class:`VolumeStrategy`): delta tracking (unbiased) or ray marching (biased) are two
+strategies, not two subclasses of one loop. :class:`VolumetricIntegrator` parses the
+shared parameters (via :class:`~mitsuba_plugins.paths.PathIntegrator`) and runs the
+surface loop in scenes without media.
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.contract import MediumTracker, medium_interaction
+from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight
+from mitsuba_plugins.params import depth_limit
+from mitsuba_plugins.paths import PathIntegrator
+from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
+from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
+
+VARIANT = mi.variant()
+
+
+class VolumeContext:
+    """What the medium phase of a path needs besides its loop state, for one render:
+    the scene, its media, emitter selection, sampler, phase-function context, hero
+    channel and shadow-ray transmittance estimator. A plain holder, never loop state."""
+
+    def __init__(self, scene, media, emitters, sampler, phase_ctx, hero, estimator):
+        self.scene, self.media, self.emitters, self.sampler = scene, media, emitters, sampler
+        self.phase_ctx, self.hero, self.estimator = phase_ctx, hero, estimator
+
+
+class VolumeStrategy(Protocol):
+    """The medium phase of :func:`trace_volumes`. ``nee`` masks lanes whose depth
+    allows an emitter sample in a medium; flights return a :class:`FreeFlight`."""
+
+    def shadow_estimator(self, media: SceneMedia):
+        """Shadow-ray transmittance estimator (an object with ``transmittance``)."""
+
+    def gathers_light(self, media: SceneMedia) -> bool:
+        """Whether flights gather light (``FreeFlight.L_e``) in this scene."""
+
+    def homogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
+                           t_max: mi.Float, flight: FreeFlight, nee: mi.Bool,
+                           active: mi.Bool) -> FreeFlight:
+        """``flight`` updated on the ``active`` lanes (all in homogeneous media)."""
+
+    def heterogeneous_flight(self, ctx: VolumeContext, tracker: MediumTracker, ray: mi.Ray3f,
+                             t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
+                             nee: mi.Bool, active: mi.Bool) -> FreeFlight:
+        """The flight through ``tracker``'s medium on the ``active`` lanes."""
+
+
+def analytic_flight(ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f, t_max: mi.Float,
+                    flight: FreeFlight, active: mi.Bool) -> FreeFlight:
+    """Analytic free flight in homogeneous media on the ``active`` lanes."""
+    sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
+                                                             active)
+    chromatic = ctx.media.chromatic_homogeneous
+    t, scattered, weight, r_u = homogeneous_free_flight(
+        mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), chromatic, ctx.hero,
+        flight.r_u)
+    flight.beta[active] *= dr.select(scattered, mi.Spectrum(sigma_s) * weight, weight)
+    if chromatic:
+        flight.r_u[active] = r_u
+    flight.scattered |= active & scattered
+    flight.t[active] = t
+    return flight
+
+
+def free_flight(ctx: VolumeContext, strategy, medium: mi.MediumPtr, ray: mi.Ray3f,
+                t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum, nee: mi.Bool,
+                active: mi.Bool) -> FreeFlight:
+    """The flight of ``ray`` through its medium up to the surface at ``t_max``: where
+    it collides (if it does), the throughput and spectral-MIS ratios after it and
+    the medium light gathered (times ``beta``). Lanes outside media keep their values."""
+    flight = FreeFlight(mi.Bool(False), mi.Float(0.0), mi.Spectrum(beta), mi.Spectrum(r_u),
+                        mi.Spectrum(0.0))
+
+    def homogeneous(flight, mask):
+        return strategy.homogeneous_flight(ctx, medium, ray, t_max, flight, nee, mask)
+
+    def heterogeneous(tracker, mask):
+        return strategy.heterogeneous_flight(ctx, tracker, ray, t_max, beta, r_u, nee, mask)
+    return ctx.media.dispatch(medium, active, flight, homogeneous, heterogeneous)
+
+
+class VolumetricIntegrator(PathIntegrator):
+    """Base of the volumetric integrators: ``self.strategy`` (set in ``configure``)
+    is the medium phase; a scene without media runs the surface loop."""
+    strategy: VolumeStrategy
+
+    def trace(self, scene, sampler, ray, medium, active):
+        media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
+        if not media.any:
+            return super().trace(scene, sampler, ray, medium, active)
+        medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
+        return trace_volumes(self, self.strategy, scene, sampler, ray, medium, media, active)
+
+
+@dr.syntax
+def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool):
+    """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
+    real collision in a medium or a surface (null surfaces included). ``integrator``
+    supplies the settings (as in :func:`~mitsuba_plugins.paths.trace_surfaces`),
+    ``strategy`` the medium phase (:class:`VolumeStrategy`)."""
+    emitters = EmitterSelection(scene, integrator.emitter_selection)
+    bsdf_ctx = mi.BSDFContext()
+    phase_ctx = mi.PhaseFunctionContext(sampler)
+    max_depth = depth_limit(integrator.max_depth)
+    hero = mi.UInt32(0)                              # channel that decides (spectral MIS)
+    if dr.hint(media.chromatic, mode="scalar"):
+        n = dr.size_v(mi.Spectrum)
+        hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
+    ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
+                        strategy.shadow_estimator(media))
+
+    # ------------------------------ loop state ------------------------------
+    ray = mi.Ray3f(ray)                              # current ray (unit direction)
+    medium = mi.MediumPtr(medium)                    # medium the ray travels in
+    L = mi.Spectrum(0.0)                             # radiance estimate
+    beta = mi.Spectrum(1.0)                          # throughput, already / mean(r_u)
+    r_u = mi.Spectrum(1.0)                           # spectral-MIS pdf ratios (mean 1)
+    eta = mi.Float(1.0)                              # product of IOR ratios (for roulette)
+    depth = mi.UInt32(0)                             # real vertices so far
+    valid_ray = mi.Bool(not integrator.hide_emitters  # alpha: hit something or sees env
+                        and scene.environment() is not None)
+    prev_si = dr.zeros(mi.Interaction3f)             # last real vertex (MIS reference)
+    prev_pdf = mi.Float(1.0)                         # p_b / phase pdf of the direction
+    prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
+    active = mi.Bool(active)                         # lanes still tracing
+
+    while dr.hint(active, label="volpath_delta"):
+        # ------------------------------ intersect ------------------------------
+        si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+
+        # ------------------- free flight through the medium -------------------
+        flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
+                                  depth + 1 < max_depth, active)
+        beta = flight.beta
+        r_u = flight.r_u
+        scattered = flight.scattered
+        t_s = flight.t
+        if dr.hint(strategy.gathers_light(media), mode="scalar"):
+            L += flight.L_e
+            valid_ray |= dr.any(flight.L_e != 0)
+
+        mei = medium_interaction(ray, t_s)
+        mei.medium = medium
+
+        # ------------------------ emission with MIS ------------------------
+        surface = active & ~scattered
+        shown = surface if not integrator.hide_emitters else surface & (depth > 0)
+        L[shown] = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
+                                             prev_pdf, prev_delta), L)
+
+        # --------------------- the vertex: scatter or surface ---------------------
+        on_surface = surface & si.is_valid()
+        bsdf = si.bsdf(ray)
+        phase = medium.phase_function()
+        ref = mi.Interaction3f(dr.select(scattered, t_s, si.t), ray.time, ray.wavelengths,
+                               dr.select(scattered, mei.p, si.p),
+                               dr.select(scattered, mi.Normal3f(0.0), si.n))
+        active_next = (depth + 1 < max_depth) & (scattered | on_surface)
+
+        # ------------------------ emitter sampling ------------------------
+        nee_medium = scattered & medium.use_emitter_sampling()
+        nee_surface = on_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        active_em = active_next & (nee_medium | nee_surface)
+        ds, em_weight = emitters.sample_direction(ref, sampler.next_2d(), active_em,
+                                                  test_visibility=False)
+        active_em &= ds.pdf != 0
+        wo = si.to_local(ds.d)
+        shadow_medium = dr.select(on_surface & si.is_medium_transition(),
+                                  si.target_medium(ds.d), medium)
+        T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
+                                 ctx.estimator, active_em)
+
+        # ---------------------- BSDF or phase sampling ----------------------
+        u1 = sampler.next_1d()
+        u2 = sampler.next_2d()
+        bsdf_val, p_b, bs, bsdf_weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, u1, u2,
+                                                               on_surface)
+        phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, scattered)
+        wo_phase, phase_weight, phase_pdf_s = phase.sample(phase_ctx, mei, u1, u2, scattered)
+        f_l = dr.select(scattered, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
+        p_dir = dr.select(scattered, phase_pdf, p_b)
+        L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
+                                                         wo, f_l, p_dir), L)
+
+        # ------------------------- throughput update -------------------------
+        null = on_surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+        real = scattered | (on_surface & ~null)
+        bsdf_weight = si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)
+        beta[on_surface] *= bsdf_weight
+        beta[scattered] *= phase_weight
+        eta[on_surface] *= bs.eta
+        ray[on_surface] = si.spawn_ray(si.to_world(bs.wo))
+        ray[scattered] = mei.spawn_ray(wo_phase)
+        medium[on_surface & si.is_medium_transition()] = si.target_medium(ray.d)
+        valid_ray |= real
+        prev_si[real] = ref
+        prev_pdf[real] = dr.select(scattered, phase_pdf_s, bs.pdf)
+        prev_delta[real] = dr.select(scattered, ~nee_medium,
+                                     mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+
+        # ------------------------- Russian roulette -------------------------
+        depth[real] += 1
+        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
+
+        # ------------------------------ advance ------------------------------
+        active = alive & (real | null) & (depth < max_depth)
+        active &= ~(scattered & (phase_pdf_s <= 0))
+
+    return dr.select(valid_ray, L, 0.0), valid_ray
