@@ -24,8 +24,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import output, stats
-from mitsuba_plugins.compare import cached_reference, load_scene
+from mitsuba_plugins import output
+from mitsuba_plugins.tools import stats
+from mitsuba_plugins.tools.compare import cached_reference, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = [({"type": "direct_mis"}, {"type": "direct"}), ({"type": "path_rr"}, {"type": "path"})]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import statistics
 import tempfile
 import time
@@ -39,7 +40,8 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
 mi.set_variant(VARIANT)
-from mitsuba_plugins import contract, estimators, output, stats, walk  # noqa: E402  (needs a variant)
+from mitsuba_plugins import contract, estimators, output, walk
+from mitsuba_plugins.tools import stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {"homogeneous_chromatic": 1.3, "sparse_smoke": 3.0, "dense_smooth": 1.0}
@@ -269,6 +271,8 @@ def markdown(result: dict) -> str:
                          f"{e['seconds']:.4f} | {e['variance'] * e['seconds']:.3e} |")
         lines.append("")
     lines += ["## Cost against sparsity (fixed mean extinction; target: ours grows <= 1.5x)", "",
+              *([f"Section re-run {result['sparsity_date']} (`--only sparsity`).", ""]
+                if "sparsity_date" in result else []),
               "Collisions per path: null collisions in free flight + tentative collisions on "
               "shadow rays (every one costs a density lookup); volpath's are estimated (see "
               "the module docstring).", "",
@@ -296,9 +300,22 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--ref-spp", type=int, default=8192)
     ap.add_argument("--ratios", default="1,3,10,30,100")
+    ap.add_argument("--only", choices=("sparsity",),
+                    help="re-run one section and merge it into the committed results")
     suffix = "" if VARIANT == "llvm_ad_rgb" else f"_{VARIANT}"
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / f"volpath_delta{suffix}"))
     args = ap.parse_args()
+    out = Path(args.out)
+    if args.only:
+        result = json.loads(out.with_suffix(".json").read_text())
+        with tempfile.TemporaryDirectory() as tmpdir:
+            result["sparsity"] = sparsity_series(args.res, args.spp // 2, args.runs, Path(tmpdir),
+                                                 [float(r) for r in args.ratios.split(",")])
+        result["sparsity_date"] = datetime.date.today().isoformat()
+        output.write_json(out.with_suffix(".json"), result, indent=1)
+        output.write_text(out.with_suffix(".md"), markdown(result))
+        print(markdown(result))
+        return
     result = {"date": datetime.date.today().isoformat(), "cpu": device_model(VARIANT),
               "variant": VARIANT,
               "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
@@ -326,7 +343,6 @@ def main() -> None:
             "sparse (max/mean 50)": estimators_alone(str(tmp / "sparse_like.npy"))}
         result["sparsity"] = sparsity_series(args.res, args.spp // 2, args.runs, tmp,
                                              [float(r) for r in args.ratios.split(",")])
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     output.write_json(out.with_suffix(".json"), result, indent=1)
     output.write_text(out.with_suffix(".md"), markdown(result))

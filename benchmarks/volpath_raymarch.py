@@ -39,7 +39,8 @@ import numpy as np
 from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 
 mi.set_variant("llvm_ad_rgb")
-from mitsuba_plugins import output, stats  # noqa: E402  (needs a variant)
+from mitsuba_plugins import output
+from mitsuba_plugins.tools import stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"

@@ -28,7 +28,7 @@ INTERPOLATIONS = {"trilinear": dr.FilterMode.Linear, "nearest": dr.FilterMode.Ne
 MAX_EXTINCTION = 1e30
 #: largest optical depth of one voxel (extinction x its shortest world edge). Tracking
 #: cuts hot majorant cells into pieces whose number grows as the square root of this
-#: (mitsuba_plugins.tracking.MediumTracker.piece): at 1e8 the worst crossing stays
+#: (mitsuba_plugins.walk.refined_piece): at 1e8 the worst crossing stays
 #: within tracking's work budget, so the answer is the unbiased one, not its roulette
 #: fallback's. Transmittance through such a voxel is exp(-1e8) already.
 MAX_VOXEL_OPTICAL_DEPTH = 1e8
@@ -141,7 +141,7 @@ class GridMedium(mi.Medium):
     does not expose its pool: changing voxel values would change which bricks exist.
     """
 
-    #: implements mitsuba_plugins.tracking.TrackedMedium (majorant_grid, refinement,
+    #: implements mitsuba_plugins.contract.TrackedMedium (majorant_grid, refinement,
     #: eval_sigma_t, eval_albedo, get_radiance, has_emission, is_chromatic, bbox)
     PROVIDES_TRACKING = True
 
@@ -323,7 +323,7 @@ class GridMedium(mi.Medium):
         if self.volume is None:
             self._check_voxel_optical_depth(float(majorant))
         #: what tracking needs to cut hot majorant segments into tighter pieces
-        #: (mitsuba_plugins.tracking.MediumTracker.piece), or None where no segment can
+        #: (mitsuba_plugins.walk.refined_piece), or None where no segment can
         #: be hot: then the kernels carry no refinement code at all
         self.refinement = self._voxels if self._has_hot_cells(cells, to_local) else None
         self.global_majorant = dr.opaque(mi.Float, float(majorant))
@@ -332,7 +332,7 @@ class GridMedium(mi.Medium):
 
     def _has_hot_cells(self, cells: np.ndarray, to_local) -> bool:
         """Can a ray cross a majorant cell with optical depth (bound x length) above
-        tracking's REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
+        contract.REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
         diagonal."""
         from mitsuba_plugins.contract import REFINE_OPTICAL_DEPTH
         if self._voxels is None or not cells.size:

@@ -114,6 +114,7 @@ class NullCollisionRule:
     control = False                 # tentative collisions against sigma_maj - sigma_min
     segments = MajorantSegments(minorant=False)
     slot = 1                        # collision counter (walk.count_collisions)
+    counts_null_only = False        # count only collisions the walk goes on past
 
     def step(self, tracker, ray, sampler, seg, t, state, active):
         rate = seg.sigma_maj - seg.sigma_min if self.control else seg.sigma_maj
@@ -125,7 +126,7 @@ class NullCollisionRule:
         state.tau = dr.select(active & ~collide, state.tau - seg_tau, state.tau)
         alive = self.collide(tracker, ray, sampler, t, seg.sigma_maj, rate, state, collide)
         active = active & alive
-        count(self.slot, active & collide)
+        count(self.slot, active & collide if self.counts_null_only else collide)
         redraw = active & collide
         state.tau = dr.select(redraw, -dr.log(1.0 - sampler.next_1d(redraw)), state.tau)
         return t, state, active
@@ -243,6 +244,7 @@ class DeltaTracking(NullCollisionRule):
     label = "delta_tracking"
     budget = "beta"
     slot = 0
+    counts_null_only = True
 
     def __init__(self, beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, chromatic: bool,
                  emission: bool):

@@ -6,7 +6,7 @@ A :class:`MajorantGrid` covers a box, the unit cube of a grid's local frame, wit
 walk a ray through it (a 3D DDA, Amanatides and Woo 1987; pbrt-v4's
 ``DDAMajorantIterator`` is the same idea) and return successive segments
 ``[t0, t1)`` with their majorant ``sigma_maj``. The segments tile the requested
-``[tmin, tmax]`` exactly, in order: where the ray runs outside the box (the grid is
+``[t_start, t_stop]`` exactly, in order: where the ray runs outside the box (the grid is
 clamped there, as Mitsuba's ``gridvolume`` does) the segment carries the global
 majorant ``outside``.
 
@@ -121,7 +121,7 @@ class DDAState:
     """Loop state of one ray's walk through a :class:`MajorantGrid`."""
     DRJIT_STRUCT = {
         "t": mi.Float,        # start of the next segment
-        "t_end": mi.Float,    # end of the requested interval (tmax)
+        "t_end": mi.Float,    # end of the requested interval (t_stop)
         "t_in": mi.Float,     # where the ray enters the box (clamped to the interval)
         "t_out": mi.Float,    # where it leaves the box (clamped to the interval)
         "cell": mi.Vector3i,  # current cell while inside the box
@@ -172,23 +172,23 @@ class MajorantGrid:
         return dr.clip(cell, mi.Vector3i(0), mi.Vector3i(rx - 1, ry - 1, rz - 1))
 
     # -- traversal ---------------------------------------------------------------
-    def start(self, ray: mi.Ray3f, tmin: mi.Float, tmax: mi.Float, active=True) -> DDAState:
-        """State for walking ``ray`` over ``[tmin, tmax]`` (``ray.d`` need not be unit)."""
+    def start(self, ray: mi.Ray3f, t_start: mi.Float, t_stop: mi.Float, active=True) -> DDAState:
+        """State for walking ``ray`` over ``[t_start, t_stop]`` (``ray.d`` need not be unit)."""
         o = self.to_local @ ray.o
         d = self.to_local @ ray.d
         box = mi.BoundingBox3f(mi.Point3f(0), mi.Point3f(1))
         hit, t_in, t_out = box.ray_intersect(mi.Ray3f(o, d))
-        t_in = dr.clip(t_in, tmin, tmax)
-        t_out = dr.clip(t_out, tmin, tmax)
+        t_in = dr.clip(t_in, t_start, t_stop)
+        t_out = dr.clip(t_out, t_start, t_stop)
         hit &= active & (t_in < t_out)
-        t_in = dr.select(hit, t_in, tmax)
-        t_out = dr.select(hit, t_out, tmax)
+        t_in = dr.select(hit, t_in, t_stop)
+        t_out = dr.select(hit, t_out, t_stop)
         # The cell holding the entry point; a point on a face sits in the cell the
         # ray goes on into, so take the cell of a point just inside.
         res = mi.Vector3f(self.resolution)
         t_mid = dr.select(hit, dr.lerp(t_in, t_out, 1e-4), t_in)
         cell = self._clamp_cell(mi.Vector3i(dr.floor((o + d * t_mid) * res)))
-        return DDAState(mi.Float(tmin), mi.Float(tmax), t_in, t_out, cell, o, d)
+        return DDAState(mi.Float(t_start), mi.Float(t_stop), t_in, t_out, cell, o, d)
 
     def next(self, state: DDAState, active=True):
         """The next segment: returns ``(t0, t1, sigma_maj, state)``.
@@ -236,12 +236,12 @@ class MajorantGrid:
                        state.o, state.d)
         return t0, t1, sigma_maj, sigma_min, new
 
-    def segments(self, ray: mi.Ray3f, tmin, tmax, max_segments: int | None = None):
+    def segments(self, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None = None):
         """All segments as numpy arrays ``(t0, t1, sigma_maj, valid)`` of shape
         ``(n_rays, n_segments)``; for tests and inspection, not for render kernels."""
         rx, ry, rz = self.resolution
         limit = max_segments or (rx + ry + rz + 3)
-        state = self.start(ray, mi.Float(tmin), mi.Float(tmax))
+        state = self.start(ray, mi.Float(t_start), mi.Float(t_stop))
         n = dr.width(ray)
         out = []
         for _ in range(limit):

@@ -14,7 +14,7 @@ its segments and a rule that treats each cell whole: :class:`MarchedTransmittanc
 
 Cells (:class:`Marcher`):
 
-* ``fixed``: boundaries at ``tmin + (u + k) dt`` for a jitter ``u`` drawn per march, so
+* ``fixed``: boundaries at ``t_in + (u + k) dt`` for a jitter ``u`` drawn per march, so
   the first cell is ``u dt`` long and the grid of cells is different for each ray.
 * ``majorant``: the majorant grid's segments (:class:`~mitsuba_plugins.majorant.MajorantGrid`)
   are cut into cells of ``dt = min(step_size, step_optical_depth / sigma_maj)``, so a
@@ -117,13 +117,13 @@ class MajorantCellState:
     """State of :class:`MajorantCells`."""
     DRJIT_STRUCT = {"t_end": mi.Float,      # end of the current cell
                     "boundary": mi.Float,   # next cell boundary in this segment
-                    "seg_end": mi.Float,    # end of the current majorant segment
+                    "t_cell": mi.Float,    # end of the current majorant segment
                     "dt": mi.Float,         # step in this segment
                     "u": mi.Float,          # jitter of the cell grid
                     "dda": DDAState}        # walk through the majorant grid
 
-    def __init__(self, t_end=None, boundary=None, seg_end=None, dt=None, u=None, dda=None):
-        self.t_end, self.boundary, self.seg_end = t_end, boundary, seg_end
+    def __init__(self, t_end=None, boundary=None, t_cell=None, dt=None, u=None, dda=None):
+        self.t_end, self.boundary, self.t_cell = t_end, boundary, t_cell
         self.dt, self.u, self.dda = dt, u, dda
 
 
@@ -171,19 +171,19 @@ class MajorantCells:
                                  mi.Float(u), dda)
 
     def next(self, tracker, ray, state, t, active):
-        fetch = active & (t >= state.seg_end)
-        _, seg_end, sigma_maj, _, dda = tracker.grid.next_bounds(state.dda, fetch,
+        fetch = active & (t >= state.t_cell)
+        _, t_cell, sigma_maj, _, dda = tracker.grid.next_bounds(state.dda, fetch,
                                                                  minorant=False)
         empty = sigma_maj <= 0
         dt_new = dr.minimum(self.step_size,
                             self.step_optical_depth / dr.select(empty, 1.0, sigma_maj))
-        seg_end = dr.select(fetch, seg_end, state.seg_end)
+        t_cell = dr.select(fetch, t_cell, state.t_cell)
         dt = dr.select(fetch, dr.select(empty, dr.inf, dt_new), state.dt)
-        boundary = dr.select(fetch, dr.select(empty, seg_end, t + state.u * dt_new),
+        boundary = dr.select(fetch, dr.select(empty, t_cell, t + state.u * dt_new),
                              state.boundary)
-        t1 = _cell_end(t, boundary, seg_end)
+        t1 = _cell_end(t, boundary, t_cell)
         boundary = dr.select(active & (t1 >= boundary), boundary + dt, boundary)
-        return active, MajorantCellState(dr.select(active, t1, state.t_end), boundary, seg_end,
+        return active, MajorantCellState(dr.select(active, t1, state.t_end), boundary, t_cell,
                                          dt, state.u, dda)
 
 

@@ -58,8 +58,9 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 WORK_BUDGET = 1 << 18
 WORK_SURVIVAL = 0.5
 #: Benchmark instrumentation: when set (see :func:`count_collisions`), kernels traced
-#: afterwards add the tentative collisions their walks go on past to ``COUNTERS[slot]``
-#: (slot 0: free flights, 1: shadow rays). ``None`` (the default) traces no counting code.
+#: afterwards count null collisions of free flights in ``COUNTERS[0]`` and every
+#: tentative collision of shadow rays in ``COUNTERS[1]``. ``None`` (the default) traces
+#: no counting code.
 COUNTERS = None
 
 

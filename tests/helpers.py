@@ -1,4 +1,4 @@
-"""Thin glue between the tests and the shared harness in mitsuba_plugins.stats."""
+"""Thin glue between the tests and the shared harness in mitsuba_plugins.tools.stats."""
 from __future__ import annotations
 
 import os
@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 from mitsuba_plugins.validity import counted
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"

@@ -41,7 +41,7 @@ def test_harness_catches_a_2pct_bias():
     b = estimate(s, {"type": "path", "max_depth": 6}, passes=16, spp=64, seed=0)
     a.mean *= 0.98
     a.se *= 0.98
-    from mitsuba_plugins import stats
+    from mitsuba_plugins.tools import stats
     assert not stats.compare(a, b).passed
 
 

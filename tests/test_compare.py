@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from mitsuba_plugins import cli, report, stats
-from mitsuba_plugins.compare import compare, reference_floor, scene_digest
+from mitsuba_plugins.tools import cli, report, stats
+from mitsuba_plugins.tools.compare import compare, reference_floor, scene_digest
 
 SCENE = "scenes/cornell_box.xml"
 PAIR = [{"type": "direct_mis"}, {"type": "direct"}]
@@ -119,7 +119,7 @@ def test_reference_override(tmp_path):
 def test_ours_or_builtin_comes_from_the_registry():
     """Issue 14.6: a Mitsuba integrator absent from compare.BUILTIN (volpathmis, ptracer)
     is a built-in, every registered plugin is ours, and every key of BUILTIN is one."""
-    from mitsuba_plugins import compare as cmp
+    from mitsuba_plugins.tools import compare as cmp
     from mitsuba_plugins.registry import PLUGINS
     assert all(cmp.is_ours(name) for name in PLUGINS)
     assert not any(cmp.is_ours(name) for name in ("volpathmis", "ptracer", "path", "prb"))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from helpers import load, render
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 
 
 @pytest.mark.parametrize("integrator, builtin", [({"type": "direct_mis"}, {"type": "direct"}),

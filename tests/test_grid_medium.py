@@ -240,7 +240,7 @@ def test_bad_nested_and_file_only_parameters(grids, tmp_path):
 
 
 def test_xml_error_reaches_the_user_as_one_line(grids):
-    from mitsuba_plugins.cli import user_message
+    from mitsuba_plugins.tools.cli import user_message
     xml = f"""<scene version="3.0.0"><shape type="cube"><bsdf type="null"/>
         <medium type="grid_medium" name="interior">
         <string name="filename" value="{grids / 'gray.vol'}"/>

@@ -7,7 +7,8 @@ import struct
 import numpy as np
 import pytest
 
-from mitsuba_plugins import cli, gridio
+from mitsuba_plugins import gridio
+from mitsuba_plugins.tools import cli, grid_info
 
 
 def _grid(shape=(3, 4, 5), channels=1, seed=0):
@@ -118,7 +119,7 @@ def test_grid_info(tmp_path, capsys):
     data[4:8, 4:8, 4:8] = 2.0  # one dense block in an empty grid
     path = tmp_path / "g.vol"
     gridio.write_vol(path, data, ((0, 0, 0), (2, 2, 2)))
-    info = gridio.grid_info(path, cells=8)
+    info = grid_info.grid_info(path, cells=8)
     assert info["resolution"] == [32, 32, 32] and info["channels"] == 1
     assert info["bbox_max"] == [2.0, 2.0, 2.0] and info["bbox_from"] == "header"
     assert info["max"] == 2.0 and info["min"] == 0.0

@@ -27,7 +27,7 @@ import pytest
 
 from helpers import (HARD_MEDIA, SCENES, assert_same_expectation, assert_same_render, camera,
                      estimate, homogeneous, media_scene, render)
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 
 RES = 24
 DEPTH = 8

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from helpers import SMOKE, SPARSE, camera, exact_optical_depth, grid, media_scene
-from mitsuba_plugins import contract, marching, stats
+from mitsuba_plugins import contract, marching
+from mitsuba_plugins.tools import stats
 
 
 def test_exp_integral_and_cell_integral():

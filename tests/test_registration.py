@@ -1,4 +1,7 @@
 """Registration follows variant switches; scalar variants say why they cannot work."""
+import ast
+from pathlib import Path
+
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -36,3 +39,35 @@ def test_switch_variant_and_render():
     mi.set_variant(VARIANT)
     img = np.array(mi.render(load("furnace_env", integrator="path_rr", res=8), spp=16))
     assert img.shape == (8, 8, 3)
+
+
+def _core_files():
+    root = Path(__file__).resolve().parents[1]
+    core = [p for p in (root / "mitsuba_plugins").glob("*.py")]
+    return core + list((root / "integrators").glob("*.py")) + list((root / "media").glob("*.py"))
+
+
+def test_core_never_imports_tooling():
+    """docs/architecture.md: plugins and the core import no evaluation tooling."""
+    offenders = []
+    for path in _core_files():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            if any(n.startswith("mitsuba_plugins.tools") for n in names):
+                offenders.append(path.name)
+    assert offenders == []
+
+
+def test_variant_bound_modules_are_registered():
+    """docs/architecture.md rule 1: a core module that binds variant types at import
+    (``VARIANT = mi.variant()`` or a ``DRJIT_STRUCT`` class) is re-imported on a variant
+    switch, so it must be listed in registry.SUPPORT_MODULES."""
+    from mitsuba_plugins.registry import SUPPORT_MODULES
+    bound = {f"mitsuba_plugins.{p.stem}" for p in Path(__file__).resolve().parents[1]
+             .joinpath("mitsuba_plugins").glob("*.py")
+             if "DRJIT_STRUCT" in p.read_text() or "VARIANT = mi.variant()" in p.read_text()}
+    assert bound - set(SUPPORT_MODULES) == set()

@@ -21,14 +21,15 @@ import pytest
 
 from helpers import (SCENES, assert_same_expectation, camera, estimate, grid, media_scene,
                      render)
-from mitsuba_plugins import cli, compare as cmp, contract, gridio, output, scene_media, walk
+from mitsuba_plugins import contract, gridio, output, scene_media, walk
+from mitsuba_plugins.tools import cli, compare as cmp
 
 ROOT = Path(__file__).resolve().parents[1]
 CORNELL = str(SCENES / "cornell_box.xml")
 
 
 def run_cli(*args, timeout=300, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "mitsuba_plugins.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT, **kw)
 
 
@@ -300,7 +301,7 @@ def _interrupt(args, wait_for: str | None, delay: float):
     # A shell starts background jobs with SIGINT ignored and children inherit that (CI run
     # as `cmd &` failed these tests so): give the CLI the default disposition, as a
     # terminal would.
-    with subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.cli", *map(str, args)],
+    with subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                           cwd=ROOT, preexec_fn=_default_sigint) as proc:
         try:

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 
 
 def synthetic(mean_img, passes, noise, rng):
@@ -33,7 +33,7 @@ def test_pixel_test_is_calibrated_for_few_passes():
     integrator tests), 64x64x3 values, 20 seeds: the Welch t threshold fails a value by
     chance at the Sidak rate (1% family-wise, so almost never), while the normal threshold
     |z| > 4.8 failed 1.2e-4 of them here (Gaussian noise; render noise has heavier tails,
-    and seeds of one render comparison failed up to 0.26%, see mitsuba_plugins.stats)."""
+    and seeds of one render comparison failed up to 0.26%, see mitsuba_plugins.tools.stats)."""
     rng = np.random.default_rng(7)
     truth = rng.uniform(0.2, 1.0, (64, 64, 3))
     t_failing, z_failing = [], []

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from helpers import assert_same_render, camera, load, render
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 from mitsuba_plugins.validity import counted, take_invalid_samples
 
 RES = 16

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from helpers import SMOKE, assert_same_expectation, camera, estimate, media_scene, medium_at
-from mitsuba_plugins import cli, gridio, vdb
+from mitsuba_plugins import gridio, vdb
+from mitsuba_plugins.tools import cli
 
 
 def make_vdb(path, *bodies: str, **arrays) -> dict:

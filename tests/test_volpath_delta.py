@@ -22,7 +22,8 @@ import pytest
 from helpers import (HARD_MEDIA as HARD, RES, SPARSE, assert_same_expectation, camera,
                      emissive_slab, estimate, exact_optical_depth, grid, homogeneous, load,
                      media_scene, render, segment)
-from mitsuba_plugins import contract, estimators, scene_media, stats
+from mitsuba_plugins import contract, estimators, scene_media
+from mitsuba_plugins.tools import stats
 
 DEPTH = 8
 

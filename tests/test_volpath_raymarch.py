@@ -21,7 +21,7 @@ import pytest
 from helpers import (HARD_MEDIA, RES, SPARSE, assert_same_expectation, camera,
                      assert_same_render, emissive_slab, estimate, grid, homogeneous, load,
                      media_scene, render)
-from mitsuba_plugins import stats
+from mitsuba_plugins.tools import stats
 from mitsuba_plugins.params import PluginParameterError
 
 DEPTH = 8

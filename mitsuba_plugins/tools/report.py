@@ -1,4 +1,4 @@
-"""What :func:`mitsuba_plugins.compare.compare` measured, written for people: the efficiency
+"""What :func:`mitsuba_plugins.tools.compare.compare` measured, written for people: the efficiency
 table (text, Markdown, CSV, JSON), error-against-time curves and a side-by-side image
 panel (PNG, matplotlib), and the images themselves (EXR + PNG)."""
 from __future__ import annotations
@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins import output, stats
-from mitsuba_plugins.compare import FLOOR_SHARE, Report
+from mitsuba_plugins import output
+from mitsuba_plugins.tools import stats
+from mitsuba_plugins.tools.compare import FLOOR_SHARE, Report
 
 #: the files :func:`write_all` writes besides the images
 TABLES = ("table.md", "table.csv", "results.json")

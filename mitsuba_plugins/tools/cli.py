@@ -49,8 +49,8 @@ def render_target(args) -> Path:
 
 def cmd_render(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.compare import load_scene, parse_integrator
-    from mitsuba_plugins.stats import timed_pass
+    from mitsuba_plugins.tools.compare import load_scene, parse_integrator
+    from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
     out = render_target(args)
     scene = load_scene(args.scene, args.res)
@@ -70,8 +70,8 @@ def compare_folder(args) -> Path:
 
 
 def cmd_compare(args) -> int:
-    from mitsuba_plugins import report as rep
-    from mitsuba_plugins.compare import compare, parse_integrator
+    from mitsuba_plugins.tools import report as rep
+    from mitsuba_plugins.tools.compare import compare, parse_integrator
     integrators = [parse_integrator(s) for s in args.integrators.split(",") if s.strip()]
     result = compare(args.scene, integrators, spp=args.spp, passes=args.passes,
                      time_budget=args.time_budget, spp_per_pass=args.spp_per_pass,
@@ -90,16 +90,36 @@ def cmd_compare(args) -> int:
     return 1 if invalid else 0
 
 
+def reference_folder(args) -> Path:
+    return Path(args.output or Path("out") / "reference" / Path(args.scene).stem)
+
+
+def cmd_reference(args) -> int:
+    from mitsuba_plugins.tools.compare import parse_integrator
+    from mitsuba_plugins.tools.reference import reference
+    folder = reference_folder(args)
+    info = reference(args.scene, parse_integrator(args.integrator), args.spp, args.passes,
+                     folder, res=args.res, seed=args.seed, workers=args.workers,
+                     scheduler=args.scheduler, threads=args.threads, variant=args.variant,
+                     progress=not args.quiet)
+    workers = sorted({p["worker"] for p in info["per_pass"]})
+    print(f"wrote {folder / 'mean.exr'}, stderr.exr and reference.json: {info['spp']} spp in "
+          f"{info['passes']} passes ({info['resumed_passes']} kept from an earlier run) on "
+          f"{len(workers)} worker(s), {info['wall_seconds']:.1f} s; {info['invalid']} NaN/Inf "
+          "samples")
+    return 1 if info["invalid"] else 0
+
+
 def cmd_grid_info(args) -> int:
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.tools import grid_info
     invalid = 0
     for path in args.files:
-        info = gridio.grid_info(path, args.majorant_resolution, args.grid)
+        info = grid_info.grid_info(path, args.majorant_resolution, args.grid)
         if args.json:
             info["null_means"] = output.JSON_NULL_MEANS
             print(output.dumps_json(info, indent=2))
         else:
-            print(gridio.format_info(info))
+            print(grid_info.format_info(info))
         invalid += bool(info["nonfinite"] or info["negative"])
     if invalid:
         print(f"mitsuba-plugins: error: {invalid} of {len(args.files)} grid file(s) invalid "
@@ -156,6 +176,28 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_compare)
 
+    rf = sub.add_parser("reference", help="render a high-spp reference, each pass a Dask task "
+                                          "(mean.exr, stderr.exr, reference.json)")
+    rf.add_argument("scene")
+    rf.add_argument("-i", "--integrator", required=True,
+                    help="e.g. volpath_delta or path:max_depth=5")
+    rf.add_argument("--spp", type=int, required=True, help="total samples per pixel")
+    rf.add_argument("--passes", type=int, default=16,
+                    help="passes (tasks) the spp are split into; seeds seed + pass (default 16)")
+    rf.add_argument("--res", type=int, help="image width/height, for scenes with a $res parameter")
+    rf.add_argument("--seed", type=int, default=0)
+    where = rf.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int,
+                       help="local worker processes (default: one per core)")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="an existing Dask scheduler, e.g. tcp://10.0.0.1:8786")
+    rf.add_argument("--threads", type=int,
+                    help="Dr.Jit threads per worker (default: cores / workers locally, all "
+                         "cores with --scheduler)")
+    rf.add_argument("-o", "--output", help="output folder (default out/reference/SCENE)")
+    rf.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    rf.set_defaults(func=cmd_reference)
+
     g = sub.add_parser("grid", help="inspect density grids (.vol, .npy, .vdb)")
     gsub = g.add_subparsers(dest="grid_command", required=True)
     gi = gsub.add_parser("info", help="shape, bounds, density statistics, majorant-grid "
@@ -192,7 +234,7 @@ def _int_range(args, name: str, lo: int, hi: int | None = None):
 
 def check_options(args) -> None:
     """Every option in range, and every output writable, before any work starts."""
-    if args.command in ("render", "compare"):
+    if args.command in ("render", "compare", "reference"):
         _int_range(args, "--res", 1)
         _int_range(args, "--spp", 1)
         _int_range(args, "--seed", 0, MAX_SEED)
@@ -208,14 +250,22 @@ def check_options(args) -> None:
         if budget is not None and not (math.isfinite(budget) and budget > 0):
             raise OptionError(f"--time-budget = {budget} is invalid; allowed: a finite number "
                               "of seconds > 0")
-        from mitsuba_plugins import report as rep
-        from mitsuba_plugins.compare import label, parse_integrator
+        from mitsuba_plugins.tools import report as rep
+        from mitsuba_plugins.tools.compare import label, parse_integrator
         labels = [label(parse_integrator(s)) for s in args.integrators.split(",") if s.strip()]
         folder = compare_folder(args)
         output.check_folder_target(folder, option="-o/--output")
         output.check_targets([folder / name for name in rep.output_names(labels)],
                              option="-o/--output")
         output.check_folder_target(args.cache, option="--cache")
+    elif args.command == "reference":
+        _int_range(args, "--passes", 1)
+        _int_range(args, "--workers", 1)
+        _int_range(args, "--threads", 1)
+        if args.spp % args.passes:
+            raise OptionError(f"--spp = {args.spp} is invalid; allowed: a multiple of "
+                              f"--passes ({args.passes})")
+        output.check_folder_target(reference_folder(args), option="-o/--output")
     elif args.command == "grid" and args.grid_command == "info":
         _int_range(args, "--majorant-resolution", 1, 1024)
     # grid convert checks its target itself (gridio.convert), before it reads anything
@@ -261,6 +311,8 @@ def interrupted():
     """Ctrl-C: no half-written file stays behind; the same message and status wherever
     it came. The process exits at once, since a running kernel cannot be stopped."""
     output.remove_pending()
+    if "mitsuba_plugins.tools.reference" in sys.modules:
+        sys.modules["mitsuba_plugins.tools.reference"].shutdown()
     print("mitsuba-plugins: interrupted", file=sys.stderr, flush=True)
     sys.stdout.flush()
     os._exit(EXIT_INTERRUPTED)

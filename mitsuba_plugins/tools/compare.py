@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins import output, stats
+from mitsuba_plugins import output
+from mitsuba_plugins.tools import stats
 
 #: Our plugin -> the Mitsuba built-in that estimates the same quantity, and the
 #: parameters of ours that the built-in understands (passed on to the reference).

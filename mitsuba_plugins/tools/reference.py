@@ -1,0 +1,277 @@
+"""High-spp references as Dask tasks: one pass = one task, on this machine or a cluster.
+
+``reference(scene, integrator, spp, passes, ...)`` renders ``spp`` samples per pixel as
+``passes`` passes whose seeds are fixed by the pass index (``seed + k``), each pass a
+task of Dask's ``distributed`` scheduler, and writes into the output folder:
+
+* ``mean.exr``: the mean of the passes; ``stderr.exr``: its standard error (the
+  passes' standard deviation / sqrt(passes));
+* ``reference.json``: the settings and, per pass, its ``seed``, ``worker`` and
+  ``seconds`` (the render, compilation included on a worker's first pass);
+* ``passes/pass_KKKKK.npz``: each finished pass, written atomically as it arrives.
+
+Where it runs does not change the image: the same seeds give the same passes on 1
+worker, W workers or a remote cluster (up to the order in which the film adds a pixel's
+samples, ~1e-7 relative). Faults: a worker that dies mid-pass loses nothing, Dask runs
+the task again and the seed makes the retry identical; an interrupted run leaves no
+``mean.exr`` (the final files are written to a temporary name and renamed), and its
+finished passes are kept, so a re-run with the same settings renders only the rest.
+
+Without ``scheduler`` an embedded ``LocalCluster`` of ``workers`` processes is started
+(default: one per core), each rendering with ``cores / workers`` Dr.Jit threads so the
+workers do not oversubscribe the cores. With ``scheduler`` (``tcp://host:8786``) the
+passes go to an existing cluster; the scene's files must then be readable at the same
+path on every worker (they are not shipped).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mitsuba_plugins import output
+
+#: seconds to wait for an existing scheduler before giving up
+CONNECT_TIMEOUT = 5.0
+#: times Dask runs a pass again after an error in it (a dead worker is not an error:
+#: its tasks are rescheduled by the scheduler anyway)
+RETRIES = 2
+#: pass files of this format are reused on a re-run
+PASS_FORMAT = 1
+
+#: per worker process: (scene path, res, digest) -> scene; (that, integrator) -> integrator
+_SCENES: dict = {}
+_INTEGRATORS: dict = {}
+#: local clusters started here and not closed yet (closed on an interrupt)
+_CLUSTERS: list = []
+
+
+class ReferenceError(RuntimeError):
+    """A reference cannot be rendered as asked (one line, for the CLI)."""
+
+
+def render_pass(scene_path: str, res, integrator: dict, spp: int, seed: int, variant: str,
+                threads, digest: str) -> dict:
+    """One pass, run in a Dask worker: ``{"image", "seed", "seconds", "invalid",
+    "worker"}``. The scene and integrator are loaded once per worker process (the kernel
+    compiles on a worker's first pass only)."""
+    import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before Dr.Jit loads
+    import drjit as dr
+    import mitsuba as mi
+    if threads:
+        dr.set_thread_count(int(threads))
+    if mi.variant() != variant:
+        mi.set_variant(variant)   # registers the plugins in the worker process
+    from mitsuba_plugins.tools.compare import load_scene
+    from mitsuba_plugins.tools.stats import timed_pass
+    from mitsuba_plugins.validity import counted
+    key = (variant, str(scene_path), res, digest)
+    if key not in _SCENES:
+        _SCENES.clear()
+        _INTEGRATORS.clear()
+        _SCENES[key] = load_scene(scene_path, res)
+    ikey = json.dumps(integrator, sort_keys=True)
+    if ikey not in _INTEGRATORS:
+        _INTEGRATORS[ikey] = counted(mi.load_dict(integrator))
+    seconds, image, invalid = timed_pass(_SCENES[key], _INTEGRATORS[ikey], spp, seed)
+    return {"image": image, "seed": seed, "seconds": seconds, "invalid": invalid,
+            "worker": _worker_name()}
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+        worker = get_worker()
+        return str(worker.name if worker.name is not None else worker.address)
+    except (ImportError, ValueError):
+        return f"pid {os.getpid()}"
+
+
+def _settings(scene_path, res, integrator, spp_per_pass, seed, variant) -> dict:
+    from mitsuba_plugins.tools.compare import scene_digest
+    return {"scene": str(Path(scene_path).resolve()), "scene_digest": scene_digest(scene_path),
+            "res": res, "integrator": integrator, "spp_per_pass": spp_per_pass,
+            "seed": seed, "variant": variant}
+
+
+def _settings_key(settings: dict) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
+
+
+def _pass_file(folder: Path, k: int) -> Path:
+    return folder / "passes" / f"pass_{k:05d}.npz"
+
+
+def _load_pass(path: Path, key: str, shape) -> dict | None:
+    """A finished pass of these settings, or None (missing, other settings, damaged)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            info = json.loads(str(f["info"]))
+            image = np.array(f["image"])
+    except Exception:   # a damaged file is rendered again, never averaged in
+        return None
+    if info.get("key") != key or info.get("format") != PASS_FORMAT or \
+            (shape is not None and image.shape != shape) or not np.all(np.isfinite(image)):
+        return None
+    return {**info, "image": image}
+
+
+def _save_pass(path: Path, key: str, result: dict) -> None:
+    info = {k: v for k, v in result.items() if k != "image"}
+    info.update(key=key, format=PASS_FORMAT)
+    with output.atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, image=result["image"], info=json.dumps(info))
+
+
+def connect(workers: int | None = None, scheduler: str | None = None, quiet: bool = True):
+    """``(client, threads)``: a client of the cluster at ``scheduler``, or of a new
+    ``LocalCluster`` of ``workers`` processes (closed with the client); ``threads``: the
+    Dr.Jit thread count each local worker renders with (None on a remote cluster)."""
+    import logging
+
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ReferenceError("Dask's 'distributed' is not installed: pip install "
+                             "'mitsuba-plugins[distributed]' (or pip install distributed)") from None
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
+        except (OSError, TimeoutError, ValueError) as error:
+            reason = str(error).strip().splitlines()[0] if str(error).strip() else \
+                type(error).__name__
+            raise ReferenceError(f"--scheduler '{scheduler}': no Dask scheduler answered "
+                                 f"within {CONNECT_TIMEOUT:g} s ({reason})") from None
+        return client, None
+    cores = os.cpu_count() or 1
+    workers = workers or cores
+    threads = max(1, cores // workers)
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=":0",
+                           silence_logs=logging.ERROR if quiet else logging.WARNING)
+    _CLUSTERS.append(cluster)
+    client = Client(cluster)
+    client._mitsuba_plugins_cluster = cluster   # closed by close()
+    return client, threads
+
+
+def close(client) -> None:
+    cluster = getattr(client, "_mitsuba_plugins_cluster", None)
+    client.close()
+    if cluster is not None:
+        cluster.close()
+        _CLUSTERS.remove(cluster)
+
+
+def shutdown() -> None:
+    """Stop the worker processes of local clusters still running (on an interrupt)."""
+    for cluster in list(_CLUSTERS):
+        try:
+            cluster.close(timeout=5)
+        except Exception:   # already going down
+            pass
+        _CLUSTERS.remove(cluster)
+
+
+def reference(scene_path: str, integrator: dict, spp: int, passes: int, out_dir,
+              res: int | None = None, seed: int = 0, workers: int | None = None,
+              scheduler: str | None = None, client=None, threads: int | None = None,
+              variant: str | None = None, progress: bool = True) -> dict:
+    """Render and write a reference (see the module docstring); returns what
+    ``reference.json`` holds. ``client``: an existing Dask client to use (else one is
+    made from ``workers`` / ``scheduler`` and closed at the end). ``threads``: Dr.Jit
+    threads per worker (default: cores / workers on a local cluster, Dr.Jit's own
+    default, all cores, on a remote one)."""
+    from mitsuba_plugins.registry import default_variant
+    if passes < 1 or spp < passes or spp % passes:
+        raise ReferenceError(f"--spp {spp} must be a positive multiple of --passes {passes}")
+    if not Path(scene_path).is_file():
+        raise ReferenceError(f"scene file not found: {scene_path}")
+    out = Path(out_dir)
+    output.check_folder_target(out, option="--output")
+    output.check_targets([out / "mean.exr", out / "stderr.exr", out / "reference.json",
+                          _pass_file(out, 0)], option="--output")
+    variant = variant or default_variant()
+    settings = _settings(scene_path, res, integrator, spp // passes, seed, variant)
+    key = _settings_key(settings)
+
+    results, shape = {}, None
+    for k in range(passes):
+        done = _load_pass(_pass_file(out, k), key, shape)
+        if done is not None:
+            results[k] = done
+            shape = done["image"].shape
+    todo = [k for k in range(passes) if k not in results]
+    t0 = time.perf_counter()
+    if todo:
+        own = client is None
+        if own:
+            client, local_threads = connect(workers, scheduler)
+            threads = threads or local_threads
+        try:
+            _run(client, threads, todo, settings, key, out, results, passes, progress)
+        finally:
+            if own:
+                close(client)
+    return _finish(out, settings, results, passes, time.perf_counter() - t0,
+                   resumed=passes - len(todo))
+
+
+def _run(client, threads, todo, settings, key, out, results, passes, progress) -> None:
+    from distributed import as_completed
+    n_workers = len(client.scheduler_info().get("workers", {}))
+    futures = [client.submit(render_pass, settings["scene"], settings["res"],
+                             settings["integrator"], settings["spp_per_pass"],
+                             (settings["seed"] + k) % 2 ** 32, settings["variant"], threads,
+                             settings["scene_digest"], key=f"mitsuba-pass-{key[:16]}-{k}",
+                             retries=RETRIES, pure=False)
+               for k in todo]
+    index = {f.key: k for f, k in zip(futures, todo)}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=passes, initial=passes - len(todo), unit="pass",
+                   desc=f"reference ({n_workers} workers)")
+    try:
+        for future in as_completed(futures):
+            k = index[future.key]
+            result = future.result()
+            _save_pass(_pass_file(out, k), key, result)
+            results[k] = result
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+        for future in futures:   # an interrupt cancels what is left
+            future.cancel()
+
+
+def _finish(out: Path, settings: dict, results: dict, passes: int, wall: float,
+            resumed: int) -> dict:
+    from mitsuba_plugins.tools.stats import Estimate
+    images = [results[k]["image"] for k in range(passes)]
+    est = Estimate.from_passes(images, settings["spp_per_pass"])
+    se = est.se if passes > 1 else np.zeros_like(est.mean)
+    info = {
+        **{k: v for k, v in settings.items()},
+        "spp": settings["spp_per_pass"] * passes,
+        "passes": passes,
+        "resumed_passes": resumed,
+        "wall_seconds": wall,
+        "invalid": int(sum(results[k]["invalid"] for k in range(passes))),
+        "per_pass": [{"pass": k, "seed": int(results[k]["seed"]),
+                      "worker": results[k]["worker"], "seconds": float(results[k]["seconds"]),
+                      "invalid": int(results[k]["invalid"])} for k in range(passes)],
+    }
+    output.write_exr(out / "stderr.exr", se)
+    output.write_json(out / "reference.json", info, indent=1)
+    output.write_exr(out / "mean.exr", est.mean)   # last: its presence means complete
+    return info

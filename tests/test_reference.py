@@ -1,0 +1,131 @@
+"""References as Dask tasks (mitsuba_plugins.tools.reference), on 127.0.0.1 only: the
+image does not depend on where the passes ran, a killed worker loses nothing, an
+interrupted run leaves no mean.exr and resumes, a bad scheduler fails in one line."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import VARIANT
+from helpers import SCENES, assert_same_render, load, render
+from mitsuba_plugins.tools import reference as ref
+from mitsuba_plugins.tools.stats import Estimate
+
+SCENE = str(SCENES / "cornell_box.xml")
+INTEGRATOR = {"type": "path_rr", "max_depth": 4}
+
+
+def _read_exr(path) -> np.ndarray:
+    return np.array(mi.Bitmap(str(path)), dtype=np.float64)
+
+
+def _single_process(res, spp_per_pass, passes, seed=0) -> Estimate:
+    """The same passes rendered here, one after the other."""
+    scene = load("cornell_box", res=res)
+    images = [render(scene, INTEGRATOR, spp=spp_per_pass, seed=seed + k) for k in range(passes)]
+    return Estimate.from_passes(images, spp_per_pass)
+
+
+def _cli(*args, **kw):
+    return subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
+
+
+@pytest.fixture(scope="module")
+def client():
+    client, threads = ref.connect(workers=2)
+    yield client
+    ref.close(client)
+
+
+def test_mean_equals_single_process_and_uses_both_workers(client, tmp_path):
+    info = ref.reference(SCENE, INTEGRATOR, spp=8 * 8, passes=8, out_dir=tmp_path, res=16,
+                         client=client, variant=VARIANT, progress=False)
+    here = _single_process(16, 8, 8)
+    assert_same_render(_read_exr(tmp_path / "mean.exr"), here.mean)
+    assert_same_render(_read_exr(tmp_path / "stderr.exr"), here.se)
+    saved = json.loads((tmp_path / "reference.json").read_text())
+    assert [p["seed"] for p in saved["per_pass"]] == list(range(8))
+    assert len({p["worker"] for p in saved["per_pass"]}) == 2, saved["per_pass"]
+    assert saved["spp"] == 64 and saved["invalid"] == 0 and info["passes"] == 8
+
+
+def test_a_killed_worker_loses_no_pass(tmp_path):
+    """SIGKILL one of two workers once the first pass has landed: Dask reruns its task
+    elsewhere (or on the restarted worker) and the image is the one of the same seeds."""
+    client, _ = ref.connect(workers=2)
+    try:
+        pids = list(client.run(os.getpid).values())
+        errors = []
+
+        def run():
+            try:
+                ref.reference(SCENE, INTEGRATOR, spp=12 * 64, passes=12, out_dir=tmp_path,
+                              res=32, client=client, variant=VARIANT, progress=False)
+            except BaseException as error:  # reported below
+                errors.append(error)
+        thread = threading.Thread(target=run)
+        thread.start()
+        deadline = time.time() + 120
+        while not list((tmp_path / "passes").glob("pass_*.npz")) and time.time() < deadline:
+            time.sleep(0.05)
+        os.kill(pids[0], signal.SIGKILL)
+        thread.join(300)
+        assert not thread.is_alive() and not errors, errors
+    finally:
+        ref.close(client)
+    here = _single_process(32, 64, 12)
+    assert_same_render(_read_exr(tmp_path / "mean.exr"), here.mean)
+
+
+def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
+    out = tmp_path / "ref"
+    args = ["reference", SCENE, "-i", "path_rr:max_depth=4", "--spp", 16 * 96, "--passes", 16,
+            "--res", 32, "--workers", 1, "-q", "-o", out]
+    proc = _cli(*args)
+    deadline = time.time() + 120
+    while len(list((out / "passes").glob("pass_*.npz"))) < 2 and time.time() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted" in err, err
+    kept = len(list((out / "passes").glob("pass_*.npz")))
+    assert kept >= 2 and not (out / "mean.exr").exists()
+    assert not list(out.glob(".*.tmp*"))           # no temporary file left behind
+
+    proc = _cli(*args)
+    stdout, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    saved = json.loads((out / "reference.json").read_text())
+    assert saved["resumed_passes"] >= kept - 1    # a pass written at the interrupt may be torn
+    here = _single_process(32, 96, 16)
+    assert_same_render(_read_exr(out / "mean.exr"), here.mean)
+
+
+def test_bad_scheduler_fails_in_one_line(tmp_path):
+    t0 = time.time()
+    proc = _cli("reference", SCENE, "-i", "path_rr", "--spp", 4, "--passes", 2, "--res", 8,
+                "--scheduler", "tcp://127.0.0.1:9", "-o", tmp_path / "r")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2, err
+    assert err.count("\n") == 1 and "tcp://127.0.0.1:9" in err and "scheduler" in err, err
+    assert time.time() - t0 < 20
+    assert not (tmp_path / "r" / "mean.exr").exists()
+
+
+def test_options_are_checked_before_any_work(tmp_path):
+    proc = _cli("reference", SCENE, "-i", "path_rr", "--spp", 10, "--passes", 4,
+                "-o", tmp_path / "r")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "--spp = 10" in err and "multiple of --passes" in err
