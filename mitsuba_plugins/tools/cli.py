@@ -188,7 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     rf.add_argument("--seed", type=int, default=0)
     where = rf.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int,
-                       help="local worker processes (default: one per core)")
+                       help="local worker processes, each with cores / workers Dr.Jit "
+                            "threads (default 1: one process using every core)")
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="an existing Dask scheduler, e.g. tcp://10.0.0.1:8786")
     rf.add_argument("--threads", type=int,

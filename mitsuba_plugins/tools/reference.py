@@ -18,8 +18,8 @@ the task again and the seed makes the retry identical; an interrupted run leaves
 finished passes are kept, so a re-run with the same settings renders only the rest.
 
 Without ``scheduler`` an embedded ``LocalCluster`` of ``workers`` processes is started
-(default: one per core), each rendering with ``cores / workers`` Dr.Jit threads so the
-workers do not oversubscribe the cores. With ``scheduler`` (``tcp://host:8786``) the
+(default :data:`DEFAULT_WORKERS`), each rendering with ``cores / workers`` Dr.Jit
+threads so the workers do not oversubscribe the cores. With ``scheduler`` (``tcp://host:8786``) the
 passes go to an existing cluster; the scene's files must then be readable at the same
 path on every worker (they are not shipped).
 """
@@ -40,6 +40,11 @@ CONNECT_TIMEOUT = 5.0
 #: times Dask runs a pass again after an error in it (a dead worker is not an error:
 #: its tasks are rescheduled by the scheduler anyway)
 RETRIES = 2
+#: local worker processes by default: one, rendering with every core's Dr.Jit thread.
+#: On the 2-core benchmark machine it finished a 38 s reference in 38 s where two
+#: one-thread workers took 45 s (benchmarks/results/reference_scaling.md): Dr.Jit
+#: already spreads a pass over the cores, and two processes contend for them.
+DEFAULT_WORKERS = 1
 #: pass files of this format are reused on a re-run
 PASS_FORMAT = 1
 
@@ -151,7 +156,7 @@ def connect(workers: int | None = None, scheduler: str | None = None, quiet: boo
                                  f"within {CONNECT_TIMEOUT:g} s ({reason})") from None
         return client, None
     cores = os.cpu_count() or 1
-    workers = workers or cores
+    workers = workers or DEFAULT_WORKERS
     threads = max(1, cores // workers)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                            dashboard_address=":0",
