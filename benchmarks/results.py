@@ -85,7 +85,8 @@ def reference_spp(scene, reference: dict, seconds: float) -> int:
     return max(256, int(seconds / pilot * 4) // 16 * 16)
 
 
-def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None) -> list:
+def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None,
+            scheduler: str | None = None) -> list:
     from mitsuba_plugins import output
     from mitsuba_plugins.tools import report
     from mitsuba_plugins.tools.compare import compare, load_scene, parse_integrator, reference_for
@@ -102,7 +103,8 @@ def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None) -
         ref_spp = max(reference_spp(scene, r, ref_seconds) for r in refs)
         t0 = time.perf_counter()
         result = compare(path, integrators, time_budget=budget, spp_per_pass=16, ref_spp=ref_spp,
-                         res=RES, cache_dir=cache, progress=False, reference=ref)
+                         res=RES, cache_dir=cache, progress=False, reference=ref,
+                         scheduler=scheduler)
         print(f"{name}: {time.perf_counter() - t0:.0f} s (reference {ref_spp} spp)", flush=True)
         report.plot_curves(result, FIGURES / f"{name}_curves.png")
         report.plot_panel(result, FIGURES / f"{name}_panel.png")
@@ -319,6 +321,9 @@ def main() -> int:
     p.add_argument("--variant", default=None,
                    help="Mitsuba variant (default $MITSUBA_PLUGINS_VARIANT or llvm_ad_rgb)")
     p.add_argument("--no-scale", action="store_true", help="gallery only (no scale table)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="render missing references as tasks on this Dask cluster; the timed "
+                        "cells run here, one at a time")
     args = p.parse_args()
     if args.scale_worker:
         print(json.dumps(scale_worker(json.loads(args.scale_worker))))
@@ -346,7 +351,7 @@ def main() -> int:
     if not args.keep_references and cache.exists():
         shutil.rmtree(cache)
     start = time.perf_counter()
-    results = gallery(args.budget, args.ref_seconds, cache, args.only)
+    results = gallery(args.budget, args.ref_seconds, cache, args.only, args.scheduler)
     scale_rows = []
     if not args.no_scale:
         with tempfile.TemporaryDirectory() as tmp:

@@ -129,3 +129,19 @@ def test_options_are_checked_before_any_work(tmp_path):
                 "-o", tmp_path / "r")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "--spp = 10" in err and "multiple of --passes" in err
+
+
+def test_compare_renders_missing_references_on_the_cluster(client, tmp_path):
+    """compare --scheduler: the cached reference is the one a local render would cache
+    (same passes, same seeds), rendered as tasks."""
+    from mitsuba_plugins.tools.compare import REFERENCE_PASSES, cached_reference
+    scene = load("cornell_box", res=8)
+    spec = {"type": "path", "max_depth": 3}
+    address = client.scheduler.address
+    remote = cached_reference(scene, SCENE, 8, spec, 4 * REFERENCE_PASSES, tmp_path / "a",
+                              progress=False, scheduler=address)
+    local = cached_reference(scene, SCENE, 8, spec, 4 * REFERENCE_PASSES, tmp_path / "b",
+                             progress=False)
+    assert_same_render(remote.mean, local.mean)
+    assert_same_render(remote.se, local.se)
+    assert remote.passes == local.passes == REFERENCE_PASSES

@@ -77,7 +77,8 @@ def cmd_compare(args) -> int:
                      time_budget=args.time_budget, spp_per_pass=args.spp_per_pass,
                      ref_spp=args.ref_spp, res=args.res, cache_dir=Path(args.cache),
                      seed=args.seed, progress=not args.quiet,
-                     reference=parse_integrator(args.reference) if args.reference else None)
+                     reference=parse_integrator(args.reference) if args.reference else None,
+                     scheduler=args.scheduler)
     out = compare_folder(args)
     rep.write_all(result, out)
     print()
@@ -172,6 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--res", type=int, help="image width/height, for scenes with a $res parameter")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--cache", default=".cache/references", help="reference cache folder")
+    c.add_argument("--scheduler", metavar="ADDRESS",
+                   help="render missing references as tasks on this Dask cluster (the timed "
+                        "rows run here)")
     c.add_argument("-o", "--output", help="output folder (default out/compare/SCENE)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_compare)

@@ -172,7 +172,8 @@ def _write_cache_entry(path: Path, est: stats.Estimate, meta: str) -> None:
 
 
 def cached_reference(scene, scene_path: str, res, reference: dict, spp: int, cache_dir: Path,
-                     seed: int = 0x5EED0000, progress: bool = True) -> stats.Estimate:
+                     seed: int = 0x5EED0000, progress: bool = True,
+                     scheduler: str | None = None) -> stats.Estimate:
     """High-spp reference (mean of 16 passes and its per-pixel standard error), cached on
     disk keyed by scene content (:func:`scene_digest`), resolution, integrator, spp and
     variant. Next to the ``.npz`` the mean and standard-error images are written as EXR.
@@ -195,9 +196,15 @@ def cached_reference(scene, scene_path: str, res, reference: dict, spp: int, cac
             return est
         print(f"mitsuba-plugins: reference cache entry '{path}' is damaged ({reason}); "
               "rebuilding it", file=sys.stderr)
-    est = stats.render_passes(scene, REFERENCE_PASSES, per_pass, integrator=mi.load_dict(reference),
-                              seed=seed, warmup=False,
-                              progress=f"reference {label(reference)} {spp} spp" if progress else None)
+    if scheduler:   # the same passes and seeds, as tasks on a Dask cluster
+        from mitsuba_plugins.tools.reference import estimate_on_cluster
+        est = estimate_on_cluster(scene_path, res, reference, per_pass, REFERENCE_PASSES, seed,
+                                  scheduler=scheduler, progress=progress)
+    else:
+        est = stats.render_passes(scene, REFERENCE_PASSES, per_pass, integrator=mi.load_dict(reference),
+                                  seed=seed, warmup=False,
+                                  progress=f"reference {label(reference)} {spp} spp"
+                                  if progress else None)
     if est.invalid:
         raise RuntimeError(f"reference {label(reference)} produced {est.invalid} NaN/Inf samples")
     _write_cache_entry(path, est, meta)
@@ -310,13 +317,16 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
             time_budget: float | None = None, spp_per_pass: int | None = None,
             ref_spp: int | None = None, res: int | None = None,
             cache_dir: Path = Path(".cache/references"), seed: int = 0,
-            progress: bool = True, reference: dict | None = None) -> Report:
+            progress: bool = True, reference: dict | None = None,
+            scheduler: str | None = None) -> Report:
     """Measure ``integrators`` on one scene, at equal spp (``spp`` in ``passes``) or, with
     ``time_budget`` seconds, at equal time (passes of ``spp_per_pass``, default 16).
 
     Each is measured against the built-in that estimates the same quantity
     (:func:`reference_for`), or against ``reference`` for all (e.g. where the built-in
-    is biased); ratios are to the built-in row, whichever the reference."""
+    is biased); ratios are to the built-in row, whichever the reference. ``scheduler``:
+    render missing references as tasks on that Dask cluster (the timed rows always run
+    here, in this process: times are never summed across machines)."""
     if spp_per_pass is not None and spp_per_pass < 1:
         raise ValueError(f"--spp-per-pass must be >= 1; got {spp_per_pass}")
     if ref_spp is not None and ref_spp < REFERENCE_PASSES:
@@ -341,7 +351,8 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
     for run in runs:
         if run.reference not in references:
             references[run.reference] = cached_reference(scene, scene_path, res, run.reference_spec,
-                                                         ref_spp, Path(cache_dir), progress=progress)
+                                                         ref_spp, Path(cache_dir), progress=progress,
+                                                         scheduler=scheduler)
         run.use_reference(references[run.reference])
     for run in runs:
         run.warm_up(scene, spp_per_pass)

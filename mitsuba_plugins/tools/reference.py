@@ -220,8 +220,11 @@ def reference(scene_path: str, integrator: dict, spp: int, passes: int, out_dir,
         if own:
             client, local_threads = connect(workers, scheduler)
             threads = threads or local_threads
+        def store(k, result):
+            _save_pass(_pass_file(out, k), key, result)
+            results[k] = result
         try:
-            _run(client, threads, todo, settings, key, out, results, passes, progress)
+            run_passes(client, threads, settings, todo, store, passes, progress)
         finally:
             if own:
                 close(client)
@@ -229,8 +232,13 @@ def reference(scene_path: str, integrator: dict, spp: int, passes: int, out_dir,
                    resumed=passes - len(todo))
 
 
-def _run(client, threads, todo, settings, key, out, results, passes, progress) -> None:
+def run_passes(client, threads, settings: dict, todo, store, total: int,
+               progress: bool = True) -> None:
+    """Render passes ``todo`` (pass ``k`` with seed ``settings["seed"] + k``) as tasks on
+    ``client``'s cluster; ``store(k, result)`` is called as each arrives. An interrupt
+    (or an error) cancels the passes still queued."""
     from distributed import as_completed
+    key = _settings_key(settings)
     n_workers = len(client.scheduler_info().get("workers", {}))
     futures = [client.submit(render_pass, settings["scene"], settings["res"],
                              settings["integrator"], settings["spp_per_pass"],
@@ -242,21 +250,41 @@ def _run(client, threads, todo, settings, key, out, results, passes, progress) -
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=passes, initial=passes - len(todo), unit="pass",
-                   desc=f"reference ({n_workers} workers)")
+        bar = tqdm(total=total, initial=total - len(todo), unit="pass", leave=False,
+                   desc=f"reference {settings['integrator']['type']} ({n_workers} workers)")
     try:
         for future in as_completed(futures):
-            k = index[future.key]
-            result = future.result()
-            _save_pass(_pass_file(out, k), key, result)
-            results[k] = result
+            store(index[future.key], future.result())
             if bar is not None:
                 bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-        for future in futures:   # an interrupt cancels what is left
+        for future in futures:
             future.cancel()
+
+
+def estimate_on_cluster(scene_path: str, res, integrator: dict, spp_per_pass: int, passes: int,
+                        seed: int, scheduler: str | None = None, workers: int | None = None,
+                        progress: bool = True):
+    """``passes`` passes rendered as tasks (on the cluster at ``scheduler``, else a local
+    one), as a :class:`~mitsuba_plugins.tools.stats.Estimate`: the same seeds as
+    :func:`~mitsuba_plugins.tools.stats.render_passes` with ``seed`` (``compare``'s
+    reference cache uses it)."""
+    import mitsuba as mi
+    from mitsuba_plugins.tools.stats import Estimate
+    settings = _settings(scene_path, res, integrator, spp_per_pass, seed, mi.variant())
+    results = {}
+    client, threads = connect(workers, scheduler)
+    try:
+        run_passes(client, threads, settings, range(passes), results.__setitem__, passes,
+                   progress)
+    finally:
+        close(client)
+    ordered = [results[k] for k in range(passes)]
+    return Estimate.from_passes([r["image"] for r in ordered], spp_per_pass,
+                                [r["seconds"] for r in ordered],
+                                sum(r["invalid"] for r in ordered))
 
 
 def _finish(out: Path, settings: dict, results: dict, passes: int, wall: float,
