@@ -85,27 +85,56 @@ def reference_spp(scene, reference: dict, seconds: float) -> int:
     return max(256, int(seconds / pilot * 4) // 16 * 16)
 
 
+def gallery_cell(name: str, specs: list, reference, budget: float, ref_seconds: float,
+                 cache: str, scheduler: str | None = None, variant: str | None = None):
+    """One scene of the gallery: its reference spp (a timed pilot), then ``compare`` at
+    equal time. Returns ``(result, ref_spp, seconds)``. Runs here or as a Dask task on a
+    worker (``variant`` is then set there); every row of a cell is timed on the machine
+    that runs the cell."""
+    import mitsuba as mi
+    if variant and mi.variant() != variant:
+        mi.set_variant(variant)
+    from mitsuba_plugins.tools.compare import compare, load_scene, parse_integrator, reference_for
+    path = str(ROOT / "scenes" / f"{name}.xml")
+    integrators = [parse_integrator(s) for s in specs]
+    ref = parse_integrator(reference) if reference else None
+    refs = [ref] if ref else list({json.dumps(reference_for(i), sort_keys=True): reference_for(i)
+                                   for i in integrators}.values())
+    scene = load_scene(path, RES)
+    ref_spp = max(reference_spp(scene, r, ref_seconds) for r in refs)
+    t0 = time.perf_counter()
+    result = compare(path, integrators, time_budget=budget, spp_per_pass=16, ref_spp=ref_spp,
+                     res=RES, cache_dir=Path(cache), progress=False, reference=ref,
+                     scheduler=scheduler)
+    result.scene = f"scenes/{name}.xml"     # as the docs name it, wherever it ran
+    return result, ref_spp, time.perf_counter() - t0
+
+
 def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None,
-            scheduler: str | None = None) -> list:
+            scheduler: str | None = None, cells: bool = False) -> list:
+    """The gallery's cells in order. ``scheduler``: references render as tasks there;
+    with ``cells``, each whole cell is one task instead (its timed rows on one worker)."""
+    import mitsuba as mi
     from mitsuba_plugins import output
     from mitsuba_plugins.tools import report
-    from mitsuba_plugins.tools.compare import compare, load_scene, parse_integrator, reference_for
+    todo = [(name, specs, reference) for name, specs, reference in GALLERY
+            if not only or name in only]
+    if cells:
+        from mitsuba_plugins.tools.reference import close, connect
+        client, _ = connect(scheduler=scheduler)
+        try:
+            futures = [client.submit(gallery_cell, name, specs, reference, budget, ref_seconds,
+                                     str(cache), None, mi.variant(), pure=False)
+                       for name, specs, reference in todo]
+            outcomes = client.gather(futures)
+        finally:
+            close(client)
+    else:
+        outcomes = [gallery_cell(name, specs, reference, budget, ref_seconds, str(cache),
+                                 scheduler) for name, specs, reference in todo]
     results = []
-    for name, specs, reference in GALLERY:
-        if only and name not in only:
-            continue
-        path = f"scenes/{name}.xml"          # relative: main() works in the repository root
-        integrators = [parse_integrator(s) for s in specs]
-        ref = parse_integrator(reference) if reference else None
-        refs = [ref] if ref else list({json.dumps(reference_for(i), sort_keys=True): reference_for(i)
-                                       for i in integrators}.values())
-        scene = load_scene(path, RES)
-        ref_spp = max(reference_spp(scene, r, ref_seconds) for r in refs)
-        t0 = time.perf_counter()
-        result = compare(path, integrators, time_budget=budget, spp_per_pass=16, ref_spp=ref_spp,
-                         res=RES, cache_dir=cache, progress=False, reference=ref,
-                         scheduler=scheduler)
-        print(f"{name}: {time.perf_counter() - t0:.0f} s (reference {ref_spp} spp)", flush=True)
+    for (name, _, _), (result, ref_spp, seconds) in zip(todo, outcomes):
+        print(f"{name}: {seconds:.0f} s (reference {ref_spp} spp)", flush=True)
         report.plot_curves(result, FIGURES / f"{name}_curves.png")
         report.plot_panel(result, FIGURES / f"{name}_panel.png")
         output.write_json(FIGURES / f"{name}.json", result.to_dict(), indent=1)
@@ -324,6 +353,10 @@ def main() -> int:
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="render missing references as tasks on this Dask cluster; the timed "
                         "cells run here, one at a time")
+    p.add_argument("--cells", action="store_true",
+                   help="with --scheduler: run each scene's whole cell (references and timed "
+                        "rows) as one task; start one worker per machine (dask worker "
+                        "--nworkers 1) so that timed cells never share a machine")
     args = p.parse_args()
     if args.scale_worker:
         print(json.dumps(scale_worker(json.loads(args.scale_worker))))
@@ -351,7 +384,9 @@ def main() -> int:
     if not args.keep_references and cache.exists():
         shutil.rmtree(cache)
     start = time.perf_counter()
-    results = gallery(args.budget, args.ref_seconds, cache, args.only, args.scheduler)
+    if args.cells and not args.scheduler:
+        p.error("--cells needs --scheduler")
+    results = gallery(args.budget, args.ref_seconds, cache, args.only, args.scheduler, args.cells)
     scale_rows = []
     if not args.no_scale:
         with tempfile.TemporaryDirectory() as tmp:
