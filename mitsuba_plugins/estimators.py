@@ -134,11 +134,6 @@ class NullCollisionRule:
     def travel(self, state, seg, step, active) -> None:
         """Weight for travelling ``step`` without a tentative collision (none by default)."""
 
-    def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
-                      sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
-        """Estimate ``exp(-int_0^t_max sigma_t)`` along ``ray`` (transmittance rules)."""
-        return walk(tracker, ray, t_max, sampler, self, active)
-
 
 class TransmittanceState:
     DRJIT_STRUCT = {"tau": mi.Float,        # optical depth to the next collision
@@ -149,7 +144,8 @@ class TransmittanceState:
 
 
 class RatioTracking(NullCollisionRule):
-    """``T *= sigma_n / sigma_maj`` at every tentative collision; Russian roulette once
+    """The base of the transmittance rules (their state, result and ``transmittance``).
+    ``T *= sigma_n / sigma_maj`` at every tentative collision; Russian roulette once
     ``max(T) < 0.1``: die with ``q = max(0.05, 1 - max(T))``, else ``T /= 1 - q``."""
     label = "ratio_tracking"
     budget = "T"
@@ -170,6 +166,11 @@ class RatioTracking(NullCollisionRule):
 
     def finish(self, t, state, t_out, entered):
         return state.T
+
+    def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
+                      sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
+        """Estimate ``exp(-int_0^t_max sigma_t)`` along ``ray``."""
+        return walk(tracker, ray, t_max, sampler, self, active)
 
 
 class ResidualRatioTracking(RatioTracking):

@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import drjit as dr
@@ -17,6 +20,19 @@ SPARSE = str(SCENES / "data" / "sparse.vol")
 #: resolution of the media scenes' image tests
 RES = 32
 FAILURES = Path(os.environ.get("MITSUBA_PLUGINS_TEST_OUT", Path(__file__).resolve().parents[1] / "out" / "test-failures"))
+
+
+def _default_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def start_cli(*args, **kw) -> subprocess.Popen:
+    """The CLI in a child process (text pipes), with SIGINT at its default disposition:
+    a shell starts background jobs with SIGINT ignored and children inherit that (CI run
+    as `cmd &` failed the interrupt tests so), so give it what a terminal would."""
+    return subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint, **kw)
 
 
 def load(scene: str, **params) -> mi.Scene:

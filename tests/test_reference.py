@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -16,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import VARIANT
-from helpers import SCENES, assert_same_render, load, render
+from helpers import SCENES, assert_same_render, load, render, start_cli
 from mitsuba_plugins.tools import reference as ref
 from mitsuba_plugins.tools.stats import Estimate
 
@@ -33,12 +31,6 @@ def _single_process(res, spp_per_pass, passes, seed=0) -> Estimate:
     scene = load("cornell_box", res=res)
     images = [render(scene, INTEGRATOR, spp=spp_per_pass, seed=seed + k) for k in range(passes)]
     return Estimate.from_passes(images, spp_per_pass)
-
-
-def _cli(*args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +84,7 @@ def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
     out = tmp_path / "ref"
     args = ["reference", SCENE, "-i", "path_rr:max_depth=4", "--spp", 16 * 96, "--passes", 16,
             "--res", 32, "--workers", 1, "-q", "-o", out]
-    proc = _cli(*args)
+    proc = start_cli(*args)
     deadline = time.time() + 120
     while len(list((out / "passes").glob("pass_*.npz"))) < 2 and time.time() < deadline:
         assert proc.poll() is None, proc.communicate()
@@ -104,7 +96,7 @@ def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
     assert kept >= 2 and not (out / "mean.exr").exists()
     assert not list(out.glob(".*.tmp*"))           # no temporary file left behind
 
-    proc = _cli(*args)
+    proc = start_cli(*args)
     stdout, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     saved = json.loads((out / "reference.json").read_text())
@@ -115,7 +107,7 @@ def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
 
 def test_bad_scheduler_fails_in_one_line(tmp_path):
     t0 = time.time()
-    proc = _cli("reference", SCENE, "-i", "path_rr", "--spp", 4, "--passes", 2, "--res", 8,
+    proc = start_cli("reference", SCENE, "-i", "path_rr", "--spp", 4, "--passes", 2, "--res", 8,
                 "--scheduler", "tcp://127.0.0.1:9", "-o", tmp_path / "r")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2, err
@@ -125,7 +117,7 @@ def test_bad_scheduler_fails_in_one_line(tmp_path):
 
 
 def test_options_are_checked_before_any_work(tmp_path):
-    proc = _cli("reference", SCENE, "-i", "path_rr", "--spp", 10, "--passes", 4,
+    proc = start_cli("reference", SCENE, "-i", "path_rr", "--spp", 10, "--passes", 4,
                 "-o", tmp_path / "r")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "--spp = 10" in err and "multiple of --passes" in err

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from helpers import (SCENES, assert_same_expectation, camera, estimate, grid, media_scene,
-                     render)
+                     render, start_cli)
 from mitsuba_plugins import contract, gridio, output, scene_media, walk
 from mitsuba_plugins.tools import cli, compare as cmp
 
@@ -291,19 +291,10 @@ def test_tiny_step_size_is_refused_at_render_time():
 
 
 # -- 8. Ctrl-C stops any command within a second or two, the same way everywhere ----------------
-def _default_sigint():
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _interrupt(args, wait_for: str | None, delay: float):
     """Start the CLI, SIGINT it ``delay`` seconds after ``wait_for`` appears on its stderr
     (or after its start): ``(exit status, seconds from the signal to the exit, stderr)``."""
-    # A shell starts background jobs with SIGINT ignored and children inherit that (CI run
-    # as `cmd &` failed these tests so): give the CLI the default disposition, as a
-    # terminal would.
-    with subprocess.Popen([sys.executable, "-m", "mitsuba_plugins.tools.cli", *map(str, args)],
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          cwd=ROOT, preexec_fn=_default_sigint) as proc:
+    with start_cli(*args, cwd=ROOT) as proc:
         try:
             if wait_for:
                 for line in proc.stderr:
