@@ -70,7 +70,8 @@ class PathRR(PathIntegrator):
             rr_depth=self.rr.rr_depth,
             rule=p.choice("rr_rule", "throughput", RR_RULES),
             survival=p.float("rr_survival", 0.95, lo=0.0, hi=1.0, lo_open=True),
-            min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=0.95))
+            min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=0.95),
+            max_survival=self.rr.max_survival)
         self.emitter_selection = p.choice("emitter_selection", "uniform", EMITTER_SELECTIONS)
 
     def to_string(self):

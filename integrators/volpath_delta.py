@@ -12,11 +12,9 @@ from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
 
-#: Default shadow-ray estimator: chosen from the first benchmark run, where it led on both
-#: heterogeneous scenes. Inside the integrator the three estimators differ by about the
-#: run-to-run variation (3-13%); the committed run of benchmarks/results/volpath_delta.md
-#: has residual tracking ahead on both scenes.
-DEFAULT_TRANSMITTANCE = "track_length"
+#: Defaults chosen on the dense-media family (issue 16, benchmarks/results/dense.md):
+#: residual-ratio-tracked shadow rays and the roulette's survival capped at 0.99.
+DEFAULT_TRANSMITTANCE = "residual"
 
 
 class VolpathDelta(VolumetricIntegrator):
@@ -35,12 +33,19 @@ class VolpathDelta(VolumetricIntegrator):
      * - rr_depth
        - |int|
        - Depth (>= 1) at which Russian roulette starts. (Default: 5)
+     * - rr_max_survival
+       - |float|
+       - Cap of the roulette's survival probability ``min(max(beta) eta^2, cap)``, in
+         (0, 0.9999]. Mitsuba's 0.95 makes path weights grow by albedo / 0.95 per
+         vertex in media of albedo > 0.95 (heavy-tailed); 0.99 was measured best on the
+         dense family. (Default: 0.99)
      * - transmittance
        - |string|
        - Shadow-ray transmittance estimator in heterogeneous media: ``ratio`` (ratio
          tracking with roulette below 0.1), ``residual`` (residual ratio tracking, the
-         majorant grid's per-cell minorant as control) or ``track_length``.
-         (Default: ``track_length``)
+         majorant grid's per-cell minorant as control), ``track_length`` or
+         ``unbiased_march`` (Kettunen et al. 2021's unbiased ray marching).
+         (Default: ``residual``)
      * - hide_emitters
        - |bool|
        - Hide emitters seen directly (also through media). (Default: false)
@@ -55,8 +60,8 @@ class VolpathDelta(VolumetricIntegrator):
       MIS over the hero channel for chromatic extinction (Miller, Georgiev and Jarosz
       2019); see :class:`mitsuba_plugins.estimators.DeltaTracking`;
     * emissive ``grid_medium``: :math:`\sigma_a L_e` collected at tentative collisions;
-    * Russian roulette (Mitsuba's throughput rule) once per real event, never at null
-      collisions; MIS (power heuristic) between emitter and phase/BSDF sampling using
+    * Russian roulette (Mitsuba's throughput rule, survival capped at ``rr_max_survival``)
+      once per real event, never at null collisions; MIS (power heuristic) between emitter and phase/BSDF sampling using
       the directional pdfs, the transmittance being estimated in both;
     * a camera inside a medium (the sensor's ``medium``) is supported.
 
@@ -80,6 +85,7 @@ class VolpathDelta(VolumetricIntegrator):
 
     NAME = "volpath_delta"
     PARAMETERS = ("transmittance",)
+    RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
         self.transmittance = p.choice("transmittance", DEFAULT_TRANSMITTANCE,

@@ -18,6 +18,10 @@ from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
+#: Largest allowed ``rr_max_survival``: below 1 so that a path in a medium of albedo 1
+#: still ends (expected length after ``rr_depth`` at most 1 / (1 - 0.9999) vertices).
+MAX_SURVIVAL = 0.9999
+
 
 class PathIntegrator(mi.SamplingIntegrator):
     """Base of ``path_rr``, ``volpath_delta`` and ``volpath_raymarch``.
@@ -29,14 +33,18 @@ class PathIntegrator(mi.SamplingIntegrator):
     """
     NAME = "path"
     PARAMETERS: tuple = ()
+    #: Default cap of the throughput roulette's survival (``rr_max_survival``): Mitsuba's.
+    RR_MAX_SURVIVAL = 0.95
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.sample_guard = SampleGuard()  # counts and zeroes NaN/Inf samples
         p = Params(props, self.NAME,
-                   SAMPLING_INTEGRATOR_BASE + ("max_depth", "rr_depth") + self.PARAMETERS)
+                   SAMPLING_INTEGRATOR_BASE + ("max_depth", "rr_depth", "rr_max_survival")
+                   + self.PARAMETERS)
         self.max_depth = p.max_depth()
-        self.rr = RussianRoulette(rr_depth=p.rr_depth())
+        self.rr = RussianRoulette(rr_depth=p.rr_depth(), max_survival=p.float(
+            "rr_max_survival", self.RR_MAX_SURVIVAL, lo=0.0, hi=MAX_SURVIVAL, lo_open=True))
         self.emitter_selection = "uniform"
         self.mis = MIS("power", 2.0)
         self.configure(p)

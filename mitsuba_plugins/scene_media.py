@@ -8,6 +8,7 @@ import numpy as np
 
 from mitsuba_plugins.contract import MediumTracker, diagonal, medium_interaction
 from mitsuba_plugins.estimators import homogeneous_transmittance
+from mitsuba_plugins.walk import count
 
 VARIANT = mi.variant()
 
@@ -133,6 +134,7 @@ def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction
     while dr.hint(active, label="shadow_ray"):
         ray.maxt = remaining
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+        count(4, active)
         T[active] *= media.transmittance(medium, ray, dr.minimum(si.t, remaining), sampler,
                                          estimator, active)
         hit = active & si.is_valid()

@@ -134,22 +134,23 @@ def emitter_contribution(mis: MIS, si, ds, em_weight, wo, bsdf_val, p_b,
 class RussianRoulette:
     """Path termination (docs/method.md section 5) after ``rr_depth`` path vertices.
 
-    ``throughput`` (Mitsuba's rule): survival s = clamp(max(beta) * eta^2, s_min, 0.95).
-    ``fixed``: survival s = ``survival`` at every vertex.
+    ``throughput`` (Mitsuba's rule): survival s = clamp(max(beta) * eta^2, s_min, s_max),
+    s_max = 0.95 in Mitsuba. ``fixed``: survival s = ``survival`` at every vertex.
     On survival beta /= s, so the estimator stays unbiased.
     """
 
     def __init__(self, rr_depth: int, rule: str = "throughput", survival: float = 0.95,
-                 min_survival: float = 0.0):
+                 min_survival: float = 0.0, max_survival: float = 0.95):
         self.rr_depth = rr_depth
         self.rule = rule
         self.survival = survival
         self.min_survival = min_survival
+        self.max_survival = max_survival
 
     def survival_probability(self, beta_max, eta):
         if self.rule == "fixed":
             return mi.Float(self.survival)
-        s = dr.minimum(beta_max * dr.square(eta), 0.95)
+        s = dr.minimum(beta_max * dr.square(eta), self.max_survival)
         if self.min_survival > 0:
             s = dr.maximum(s, self.min_survival)
         return s
@@ -168,4 +169,5 @@ class RussianRoulette:
     def __repr__(self):
         if self.rule == "fixed":
             return f"fixed (survival {self.survival:g}, from depth {self.rr_depth})"
-        return f"throughput (min survival {self.min_survival:g}, from depth {self.rr_depth})"
+        return (f"throughput (survival in [{self.min_survival:g}, {self.max_survival:g}], "
+                f"from depth {self.rr_depth})")

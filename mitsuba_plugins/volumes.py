@@ -20,8 +20,15 @@ from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
 from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
 from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
+from mitsuba_plugins.walk import count
 
 VARIANT = mi.variant()
+
+#: Benchmark instrumentation (benchmarks/dense.py): the terms of the estimator that
+#: kernels traced afterwards add to ``L`` -- ``"emission"`` (emitters found by
+#: phase/BSDF sampling, MIS-weighted) and ``"nee"`` (emitter sampling). Both by default.
+ALL_TERMS = ("emission", "nee")
+TERMS = ALL_TERMS
 
 
 class VolumeContext:
@@ -138,6 +145,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+        count(4, active)
 
         # ------------------- free flight through the medium -------------------
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
@@ -156,6 +164,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # ------------------------ emission with MIS ------------------------
         surface = active & ~scattered
         shown = surface if not integrator.hide_emitters else surface & (depth > 0)
+        if dr.hint("emission" not in TERMS, mode="scalar"):
+            shown = mi.Bool(False)
         L[shown] = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
                                              prev_pdf, prev_delta), L)
 
@@ -175,6 +185,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         ds, em_weight = emitters.sample_direction(ref, sampler.next_2d(), active_em,
                                                   test_visibility=False)
         active_em &= ds.pdf != 0
+        if dr.hint("nee" not in TERMS, mode="scalar"):
+            active_em = mi.Bool(False)
         wo = si.to_local(ds.d)
         shadow_medium = dr.select(on_surface & si.is_medium_transition(),
                                   si.target_medium(ds.d), medium)
@@ -211,6 +223,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
         # ------------------------- Russian roulette -------------------------
         depth[real] += 1
+        count(2, scattered)
+        count(3, on_surface & ~null)
+        count(5, active_em)
         beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
 
         # ------------------------------ advance ------------------------------

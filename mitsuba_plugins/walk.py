@@ -58,17 +58,21 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 WORK_BUDGET = 1 << 18
 WORK_SURVIVAL = 0.5
 #: Benchmark instrumentation: when set (see :func:`count_collisions`), kernels traced
-#: afterwards count null collisions of free flights in ``COUNTERS[0]`` and every
-#: tentative collision of shadow rays in ``COUNTERS[1]``. ``None`` (the default) traces
-#: no counting code.
+#: afterwards count events in ``COUNTERS``, one slot per name of :data:`COUNTER_SLOTS`:
+#: null collisions of free flights, every tentative collision of shadow rays, real
+#: scattering vertices in media, real surface vertices, ray intersections (path and
+#: shadow rays) and shadow rays. ``None`` (the default) traces no counting code.
 COUNTERS = None
+COUNTER_SLOTS = ("flight_null", "shadow_tentative", "medium_vertices", "surface_vertices",
+                 "intersections", "shadow_rays")
 
 
 def count_collisions(enable: bool = True):
-    """Turn null-collision counting on (a fresh zeroed ``mi.UInt32`` of 2 counters,
-    returned) or off. Only kernels traced while it is on count (benchmarks only)."""
+    """Turn event counting on (a fresh zeroed ``mi.UInt32``, one counter per
+    :data:`COUNTER_SLOTS` entry, returned) or off. Only kernels traced while it is on
+    count (benchmarks only)."""
     global COUNTERS
-    COUNTERS = dr.zeros(mi.UInt32, 2) if enable else None
+    COUNTERS = dr.zeros(mi.UInt32, len(COUNTER_SLOTS)) if enable else None
     if COUNTERS is not None:
         dr.make_opaque(COUNTERS)
     return COUNTERS

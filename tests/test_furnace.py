@@ -11,6 +11,7 @@ CLOSED = [  # integrator parameters, expected (Le = 1, albedo 0.5)
     ({"type": "path_rr", "rr_depth": 1}, 2.0),
     ({"type": "path_rr", "rr_depth": 1, "rr_rule": "fixed", "rr_survival": 0.5}, 2.0),
     ({"type": "path_rr", "rr_depth": 1, "rr_min_survival": 0.3}, 2.0),
+    ({"type": "path_rr", "rr_depth": 1, "rr_max_survival": 0.5}, 2.0),
     ({"type": "path_rr", "max_depth": 3}, 1.75),
     ({"type": "path_rr", "max_depth": 1}, 1.0),
     ({"type": "direct_mis"}, 1.5),

@@ -1,0 +1,367 @@
+"""Dense-media benchmark family (issue 16): where volpath_delta's time and variance go
+on dense smoke and clouds, and its efficiency against Mitsuba's volpath.
+
+The family is generated here (no data files): smooth plumes and cumulus-like grids
+(max/mean 3-20, optical depth 2-50 through the middle of the box, albedo 0.8-0.999,
+HG g 0-0.9) under three lightings -- ``area`` (a small sphere light plus a dim sky),
+``sun`` (a directional light plus a sky) and ``env`` (an environment map only) -- and
+homogeneous cubes with extinction 1e2-1e4. All render with max_depth -1 (Mitsuba's
+default) and rr_depth 5.
+
+1. ``efficiency``: equal time against volpath. Both integrators are compiled first, the
+   time per sample of each measured, then volpath renders ``--spp`` and each variant of
+   ours the spp that takes as long; ``--runs`` alternating renders each, seeds 0..runs-1.
+   relMSE (docs/method.md section 1) against a reference (:data:`REFERENCE`, ``--ref-spp``;
+   its own noise adds the same expected error to both sides, so ratios are conservative);
+   efficiency = 1 / (mean relMSE x median time). The 90% interval of each ratio is a
+   bootstrap over the runs (both sides resampled).
+2. ``profile``: per camera path, counted in our kernels (``walk.count_collisions``):
+   ray intersections, shadow rays, medium and surface vertices, null collisions in
+   flights and tentative collisions on shadow rays (each is one density lookup; real
+   collisions add one each); time per sample of both integrators.
+3. ``variance``: relative variance per sample (mean over pixels of variance / (mean^2 +
+   0.01), times spp) of volpath_delta, whole and split: by depth (max_depth 1, 2, 4, 8:
+   the variance of the truncated estimator), by term (emitter sampling alone, emission
+   found by phase/BSDF sampling alone) and by shadow-ray estimator. Sections 2 and 3
+   profile the defaults before issue 16 (``old_default``), which decided what to build.
+
+``python3 benchmarks/dense.py --out benchmarks/results/dense_profile`` gave the profile;
+``python3 benchmarks/dense.py --no-profile --variants A,B,...`` compares configurations of
+:data:`VARIANTS` at equal time (the defaults' choice, ``benchmarks/results/dense.md``).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import statistics
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
+import mitsuba as mi
+import numpy as np
+
+from surface import device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from volpath_delta import smooth_field  # noqa: E402
+from mitsuba_plugins.registry import default_variant  # noqa: E402
+
+VARIANT = default_variant()
+mi.set_variant(VARIANT)
+from mitsuba_plugins import output, volumes, walk  # noqa: E402
+from mitsuba_plugins.tools import stats  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+BUILTIN = {"type": "volpath"}
+#: Configurations of ours compared on the family (``--variants``).
+VARIANTS = {
+    "volpath_delta": {"type": "volpath_delta"},          # the defaults
+    "old_default": {"type": "volpath_delta", "transmittance": "track_length",
+                    "rr_max_survival": 0.95},
+    "ratio": {"type": "volpath_delta", "transmittance": "ratio"},
+    "residual": {"type": "volpath_delta", "transmittance": "residual"},
+    "rr0.99": {"type": "volpath_delta", "rr_max_survival": 0.99},
+    "rr0.999": {"type": "volpath_delta", "rr_max_survival": 0.999},
+    "residual_rr0.99": {"type": "volpath_delta", "transmittance": "residual",
+                        "rr_max_survival": 0.99},
+    "unbiased_march": {"type": "volpath_delta", "transmittance": "unbiased_march"},
+    "um_rr0.99": {"type": "volpath_delta", "transmittance": "unbiased_march",
+                  "rr_max_survival": 0.99},
+    "um_rr0.999": {"type": "volpath_delta", "transmittance": "unbiased_march",
+                   "rr_max_survival": 0.999},
+}
+#: The reference's integrator: unbiased and with bounded path weights (a survival cap
+#: above albedo^2 keeps the second moment finite), so no rare firefly dominates it.
+REFERENCE = {"type": "volpath_delta", "rr_max_survival": 0.999, "transmittance": "residual"}
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    shape: str             # plume | cumulus | homogeneous
+    max_over_mean: float   # of the density grid (1 for homogeneous)
+    tau: float             # optical depth through the middle of the box (sigma_t * 2)
+    albedo: float
+    g: float
+    light: str             # area | sun | env
+
+
+FAMILY = [
+    Case("plume_area", "plume", 8, 5, 0.95, 0.3, "area"),
+    Case("plume_sun", "plume", 15, 20, 0.99, 0.7, "sun"),
+    Case("plume_env", "plume", 4, 2, 0.8, 0.0, "env"),
+    Case("plume_sun_thick", "plume", 20, 50, 0.999, 0.85, "sun"),
+    Case("cumulus_area", "cumulus", 3, 10, 0.99, 0.5, "area"),
+    Case("cumulus_sun", "cumulus", 5, 50, 0.999, 0.9, "sun"),
+    Case("cumulus_env", "cumulus", 3, 20, 0.95, 0.2, "env"),
+    Case("cumulus_area_thin", "cumulus", 10, 2, 0.8, 0.9, "area"),
+    Case("homogeneous_1e2", "homogeneous", 1, 2e2, 0.99, 0.5, "sun"),
+    Case("homogeneous_1e3", "homogeneous", 1, 2e3, 0.999, 0.7, "env"),
+    Case("homogeneous_1e4", "homogeneous", 1, 2e4, 0.999, 0.0, "area"),
+]
+
+
+# -- generated media ------------------------------------------------------------------------
+def _shape(shape: str, n: int, seed: int) -> np.ndarray:
+    z, y, x = np.meshgrid(*(np.linspace(0, 1, n),) * 3, indexing="ij")
+    noise = smooth_field(n, seed)
+    noise = 0.55 + 0.45 * (noise - noise.min()) / (noise.max() - noise.min())
+    if shape == "plume":        # a column rising from the floor, widening and bending
+        cx, cz = 0.5 + 0.12 * np.sin(3.0 * y), 0.5 + 0.08 * np.cos(2.0 * y)
+        s = 0.07 + 0.22 * y
+        f = np.exp(-((x - cx) ** 2 + (z - cz) ** 2) / (2 * s ** 2)) * np.clip(4 * y, 0, 1)
+    else:                       # cumulus: a flat-based heap of blobs
+        rng = np.random.default_rng(seed)
+        f = np.zeros_like(x)
+        for _ in range(9):
+            c = rng.uniform([0.25, 0.3, 0.25], [0.75, 0.6, 0.75])
+            r = rng.uniform(0.12, 0.22)
+            f = np.maximum(f, np.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+                                     / (2 * r ** 2)))
+        f *= np.clip((y - 0.2) / 0.1, 0, 1)
+    return f * noise + 1e-4
+
+
+def density(shape: str, max_over_mean: float, n: int = 48, seed: int = 5) -> np.ndarray:
+    """Density on n^3 with the given max/mean: the shape raised to the power that gives
+    it (bisection), normalised so that the mean optical depth of the three axis lines
+    through the centre is 1 per unit length."""
+    base = _shape(shape, n, seed)
+    lo, hi = 0.0, 16.0
+    for _ in range(50):
+        p = 0.5 * (lo + hi)
+        f = base ** p
+        lo, hi = (p, hi) if f.max() / f.mean() < max_over_mean else (lo, p)
+    f = base ** (0.5 * (lo + hi))
+    c = n // 2
+    line = (f[:, c, c].mean() + f[c, :, c].mean() + f[c, c, :].mean()) / 3
+    return (f / line).astype(np.float32)
+
+
+def medium(case: Case, tmp: Path) -> dict:
+    common = {"albedo": case.albedo, "phase": {"type": "hg", "g": case.g}}
+    if case.shape == "homogeneous":
+        return {"type": "homogeneous", "sigma_t": case.tau / 2, **common}
+    path = tmp / f"{case.shape}_{case.max_over_mean:g}.npy"
+    if not path.exists():
+        np.save(path, density(case.shape, case.max_over_mean))
+    return {"type": "grid_medium", "filename": str(path), "scale": case.tau / 2,
+            "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2), **common}
+
+
+def sky(res: int = 64) -> mi.Bitmap:
+    """An environment map: a blue-to-white gradient sky, a dark ground, a sun-like spot."""
+    v, u = np.meshgrid((np.arange(res // 2) + 0.5) / (res // 2), (np.arange(res) + 0.5) / res,
+                       indexing="ij")
+    up = np.cos(np.pi * v)[..., None]
+    img = np.where(up > 0, 0.3 * np.array([0.5, 0.7, 1.0]) + 0.4 * (1 - up),
+                   0.05 * np.array([1.0, 0.9, 0.8]))
+    spot = np.exp(-((u - 0.3) ** 2 + (v - 0.3) ** 2) / (2 * 0.03 ** 2))[..., None]
+    return mi.Bitmap((img + 60.0 * spot).astype(np.float32))
+
+
+def scene(case: Case, res: int, tmp: Path) -> mi.Scene:
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 40,
+                    "to_world": mi.ScalarTransform4f().look_at([0.2, 0.9, 3.2], [0, 0, 0],
+                                                               [0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": res, "height": res,
+                             "rfilter": {"type": "box"}},
+                    "sampler": {"type": "independent", "sample_count": 16}},
+         "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium(case, tmp)}}
+    floor = {"type": "rectangle", "bsdf": {"type": "diffuse",
+                                           "reflectance": {"type": "rgb", "value": 0.5}},
+             "to_world": mi.ScalarTransform4f().translate([0, -1.0, 0]).rotate(
+                 [1, 0, 0], -90).scale(3)}
+    if case.light == "area":
+        d.update(floor=floor,
+                 sky={"type": "constant", "radiance": {"type": "rgb", "value": 0.03}},
+                 light={"type": "sphere", "center": [2.0, 2.5, 1.5], "radius": 0.12,
+                        "emitter": {"type": "area", "radiance": {"type": "rgb",
+                                                                  "value": 150.0}}})
+    elif case.light == "sun":
+        d.update(floor=floor,
+                 sky={"type": "constant", "radiance": {"type": "rgb", "value": [0.1, 0.15, 0.25]}},
+                 sun={"type": "directional", "direction": [-0.6, -1.0, -0.4],
+                      "irradiance": {"type": "rgb", "value": 3.0}})
+    else:
+        d.update(env={"type": "envmap", "bitmap": sky()})
+    return mi.load_dict(d)
+
+
+# -- measurements -----------------------------------------------------------------------------
+def reference(scene, spp: int) -> np.ndarray:
+    integ = mi.load_dict(REFERENCE)
+    chunk = min(spp, 256)
+    return np.mean([timed_render(scene, integ, chunk, seed=7 * 10 ** 6 + i)[1]
+                    for i in range(max(1, spp // chunk))], axis=0)
+
+
+def bootstrap_ratio(ours, builtin, n: int = 2000, seed: int = 1) -> tuple:
+    """5% and 95% quantiles of mean(builtin relMSE) / mean(ours relMSE), runs resampled."""
+    rng = np.random.default_rng(seed)
+    a, b = np.asarray(ours), np.asarray(builtin)
+    r = [b[rng.integers(0, len(b), len(b))].mean() / a[rng.integers(0, len(a), len(a))].mean()
+         for _ in range(n)]
+    return float(np.quantile(r, 0.05)), float(np.quantile(r, 0.95))
+
+
+def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
+    integ = {"builtin": mi.load_dict(BUILTIN), **{k: mi.load_dict(v) for k, v in variants.items()}}
+    per_spp = {}
+    for k, i in integ.items():                         # compile, then time one render
+        timed_render(scene, i, spp, seed=10 ** 6)
+        per_spp[k] = timed_render(scene, i, spp, seed=10 ** 6 + 1)[0] / spp
+    n = {k: max(1, int(round(spp * per_spp["builtin"] / per_spp[k]))) for k in integ}
+    times = {k: [] for k in integ}
+    errors = {k: [] for k in integ}
+    order = list(integ)
+    for run in range(runs):
+        for k in (order if run % 2 == 0 else order[::-1]):
+            t, img = timed_render(scene, integ[k], n[k], seed=run)
+            assert np.isfinite(img).all(), f"{k}: non-finite pixels"
+            times[k].append(t)
+            errors[k].append(stats.rel_mse(img, ref))
+    out = {}
+    for k in integ:
+        t, e = statistics.median(times[k]), float(np.mean(errors[k]))
+        out[k] = {"spp": n[k], "median_s": t, "rel_mse": e, "rel_mse_runs": errors[k],
+                  "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k]}
+    base = out["builtin"]
+    for k in variants:
+        r = out[k]
+        r["efficiency_ratio"] = r["efficiency"] / base["efficiency"]
+        lo, hi = bootstrap_ratio(r["rel_mse_runs"], base["rel_mse_runs"])
+        scale = base["median_s"] / r["median_s"]
+        r["efficiency_ratio_90"] = [lo * scale, hi * scale]
+    return out
+
+
+def profile(scene, spp: int) -> dict:
+    counters = walk.count_collisions()
+    res = scene.sensors()[0].film().size()
+    mi.render(scene, integrator=mi.load_dict(VARIANTS["old_default"]), spp=spp, seed=99)
+    c = np.array(counters, dtype=np.float64) / (spp * res[0] * res[1])
+    walk.count_collisions(False)
+    out = dict(zip(walk.COUNTER_SLOTS, map(float, c)))
+    out["lookups"] = out["flight_null"] + out["shadow_tentative"]
+    return out
+
+
+def rel_variance(scene, integrator: dict, spp: int, runs: int) -> float:
+    """Relative variance per sample: mean over pixels of var / (mean^2 + eps), x spp."""
+    integ = mi.load_dict(integrator)
+    imgs = np.array([timed_render(scene, integ, spp, seed=1000 + r)[1] for r in range(runs)])
+    mean = imgs.mean(0)
+    return float(np.mean(imgs.var(0, ddof=1) / (mean ** 2 + stats.REL_MSE_EPS)) * spp)
+
+
+def variance_split(scene, case: Case, spp: int, runs: int) -> dict:
+    base = VARIANTS["old_default"]
+    out = {"all": rel_variance(scene, base, spp, runs)}
+    for depth in (1, 2, 4, 8):
+        out[f"depth<={depth}"] = rel_variance(scene, {**base, "max_depth": depth}, spp, runs)
+    for terms in (("nee",), ("emission",)):
+        volumes.TERMS = terms
+        try:
+            out[f"{terms[0]} only"] = rel_variance(scene, base, spp, runs)
+        finally:
+            volumes.TERMS = volumes.ALL_TERMS
+    if case.shape != "homogeneous":
+        for m in ("ratio", "residual"):
+            out[f"transmittance={m}"] = rel_variance(scene, {**base, "transmittance": m}, spp,
+                                                     runs)
+    return out
+
+
+# -- report -------------------------------------------------------------------------------------
+def markdown(result: dict) -> str:
+    cfg = result["config"]
+    variants = cfg["variants"]
+    lines = [
+        "# Dense-media family: volpath_delta against Mitsuba's volpath", "",
+        f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
+        f"`python3 benchmarks/dense.py {cfg['argv']}` (res {cfg['res']}, volpath {cfg['spp']} "
+        f"spp, {cfg['runs']} alternating runs at equal time, median time, mean relMSE; "
+        f"reference {cfg['ref_spp']} spp of {cfg['reference']}; max_depth -1). The family and the "
+        "method are in the script's docstring.", "",
+        "## Efficiency against volpath at equal time (90% bootstrap interval over runs)", "",
+        "| scene | max/mean | tau | albedo | g | light | volpath s/spp | "
+        + " | ".join(f"{v}" for v in variants) + " |",
+        "|---|---|---|---|---|---|---|" + "---|" * len(variants)]
+    for name, r in result["cases"].items():
+        c = r["case"]
+        e = r["efficiency"]
+        lines.append(
+            f"| {name} | {c['max_over_mean']:g} | {c['tau']:g} | {c['albedo']:g} | {c['g']:g} | "
+            f"{c['light']} | {e['builtin']['s_per_spp']:.3f} | " + " | ".join(
+                f"**{e[v]['efficiency_ratio']:.2f}x** ({e[v]['efficiency_ratio_90'][0]:.2f}-"
+                f"{e[v]['efficiency_ratio_90'][1]:.2f}), {e[v]['s_per_spp'] / e['builtin']['s_per_spp']:.2f}"
+                " time/spp" for v in variants) + " |")
+    lines += ["", "| summary | " + " | ".join(variants) + " |", "|---|" + "---|" * len(variants)]
+    for label, fn in (("median", statistics.median), ("min", min)):
+        lines.append(f"| {label} | " + " | ".join(
+            f"{fn(r['efficiency'][v]['efficiency_ratio'] for r in result['cases'].values()):.2f}x"
+            for v in variants) + " |")
+    if any("profile" in r for r in result["cases"].values()):
+        slots = list(next(r["profile"] for r in result["cases"].values() if "profile" in r))
+        lines += ["", "## Where the time goes (volpath_delta with the defaults before issue "
+                  "16, per camera path)", "",
+                  "| scene | " + " | ".join(slots) + " |", "|---|" + "---|" * len(slots)]
+        for name, r in result["cases"].items():
+            if "profile" in r:
+                lines.append(f"| {name} | " + " | ".join(f"{r['profile'][s]:.2f}"
+                                                          for s in slots) + " |")
+    if any("variance" in r for r in result["cases"].values()):
+        cols = ["all", "depth<=1", "depth<=2", "depth<=4", "depth<=8", "nee only",
+                "emission only", "transmittance=ratio", "transmittance=residual"]
+        lines += ["", "## Where the variance goes (volpath_delta, relative variance per "
+                  "sample; defaults before issue 16: track_length, rr_max_survival 0.95)", "",
+                  "| scene | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+        for name, r in result["cases"].items():
+            if "variance" in r:
+                v = r["variance"]
+                lines.append(f"| {name} | " + " | ".join(
+                    f"{v[c]:.3g}" if c in v else "-" for c in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    import sys
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--res", type=int, default=32)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--runs", type=int, default=6)
+    ap.add_argument("--ref-spp", type=int, default=1024)
+    ap.add_argument("--cases", default=",".join(c.name for c in FAMILY))
+    ap.add_argument("--variants", default="volpath_delta")
+    ap.add_argument("--no-profile", action="store_true", help="skip the time/variance profile")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "dense"))
+    args = ap.parse_args()
+    variants = {v: VARIANTS[v] for v in args.variants.split(",")}
+    cases = [c for c in FAMILY if c.name in args.cases.split(",")]
+    result = {"date": datetime.date.today().isoformat(), "cpu": device_model(VARIANT),
+              "variant": VARIANT, "cases": {},
+              "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
+                         "ref_spp": args.ref_spp, "reference": REFERENCE, "variants": list(variants),
+                         "argv": " ".join(sys.argv[1:])}}
+    with tempfile.TemporaryDirectory() as tmpdir:
+        for case in cases:
+            sc = scene(case, args.res, Path(tmpdir))
+            ref = reference(sc, args.ref_spp)
+            r = {"case": asdict(case),
+                 "efficiency": equal_time(sc, variants, args.spp, args.runs, ref)}
+            if not args.no_profile:
+                r["profile"] = profile(sc, args.spp)
+                r["variance"] = variance_split(sc, case, args.spp, max(4, args.runs))
+            result["cases"][case.name] = r
+            print(case.name, ", ".join(f"{v} {r['efficiency'][v]['efficiency_ratio']:.2f}x"
+                                       for v in variants), flush=True)
+            out = Path(args.out)
+            output.write_json(out.with_suffix(".json"), result, indent=1)
+            output.write_text(out.with_suffix(".md"), markdown(result))
+    print(markdown(result))
+
+
+if __name__ == "__main__":
+    main()
