@@ -55,21 +55,29 @@ ROOT = Path(__file__).resolve().parents[1]
 BUILTIN = {"type": "volpath"}
 #: Configurations of ours compared on the family (``--variants``).
 VARIANTS = {
+    # Every entry spells out what it compares, so that a change of defaults cannot
+    # change what an entry measures (the defaults' own entry excepted).
     "volpath_delta": {"type": "volpath_delta"},          # the defaults
-    "old_default": {"type": "volpath_delta", "transmittance": "track_length",
-                    "rr_max_survival": 0.95},
-    "ratio": {"type": "volpath_delta", "transmittance": "ratio"},
-    "residual": {"type": "volpath_delta", "transmittance": "residual"},
-    "rr0.99": {"type": "volpath_delta", "rr_max_survival": 0.99},
-    "rr0.999": {"type": "volpath_delta", "rr_max_survival": 0.999},
-    "residual_rr0.99": {"type": "volpath_delta", "transmittance": "residual",
-                        "rr_max_survival": 0.99},
-    "unbiased_march": {"type": "volpath_delta", "transmittance": "unbiased_march"},
+    "old_default": {"type": "volpath_delta", "transmittance": "track_length",  # before 16
+                    "rr_max_survival": 0.95, "medium": {"majorant_resolution": 16}},
+    "majorant16": {"type": "volpath_delta", "transmittance": "residual",
+                   "rr_max_survival": 0.99, "medium": {"majorant_resolution": 16}},
+    "track_length_rr0.99": {"type": "volpath_delta", "transmittance": "track_length",
+                            "rr_max_survival": 0.99},
+    "ratio_rr0.99": {"type": "volpath_delta", "transmittance": "ratio", "rr_max_survival": 0.99},
+    "residual_rr0.95": {"type": "volpath_delta", "transmittance": "residual",
+                        "rr_max_survival": 0.95},
+    "residual_rr0.999": {"type": "volpath_delta", "transmittance": "residual",
+                         "rr_max_survival": 0.999},
     "um_rr0.99": {"type": "volpath_delta", "transmittance": "unbiased_march",
                   "rr_max_survival": 0.99},
     "um_rr0.999": {"type": "volpath_delta", "transmittance": "unbiased_march",
                    "rr_max_survival": 0.999},
+    "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
+    "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }
+#: A variant's ``medium`` entry holds properties of the grid medium (not the integrator).
+
 #: The reference's integrator: unbiased and with bounded path weights (a survival cap
 #: above albedo^2 keeps the second moment finite), so no rare firefly dominates it.
 REFERENCE = {"type": "volpath_delta", "rr_max_survival": 0.999, "transmittance": "residual"}
@@ -138,10 +146,11 @@ def density(shape: str, max_over_mean: float, n: int = 48, seed: int = 5) -> np.
     return (f / line).astype(np.float32)
 
 
-def medium(case: Case, tmp: Path) -> dict:
+def medium(case: Case, tmp: Path, extra: dict | None = None) -> dict:
     common = {"albedo": case.albedo, "phase": {"type": "hg", "g": case.g}}
     if case.shape == "homogeneous":
         return {"type": "homogeneous", "sigma_t": case.tau / 2, **common}
+    common.update(extra or {})
     path = tmp / f"{case.shape}_{case.max_over_mean:g}.npy"
     if not path.exists():
         np.save(path, density(case.shape, case.max_over_mean))
@@ -149,18 +158,25 @@ def medium(case: Case, tmp: Path) -> dict:
             "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2), **common}
 
 
-def sky(res: int = 64) -> mi.Bitmap:
-    """An environment map: a blue-to-white gradient sky, a dark ground, a sun-like spot."""
+def sky(tmp: Path, res: int = 64) -> str:
+    """An environment map: a blue-to-white gradient sky, a dark ground, a sun-like spot;
+    written to an EXR file in ``tmp`` (an ``envmap`` given a Bitmap built from a temporary
+    numpy array failed once to load, "basic_string::_M_create"), its path returned."""
     v, u = np.meshgrid((np.arange(res // 2) + 0.5) / (res // 2), (np.arange(res) + 0.5) / res,
                        indexing="ij")
     up = np.cos(np.pi * v)[..., None]
     img = np.where(up > 0, 0.3 * np.array([0.5, 0.7, 1.0]) + 0.4 * (1 - up),
                    0.05 * np.array([1.0, 0.9, 0.8]))
     spot = np.exp(-((u - 0.3) ** 2 + (v - 0.3) ** 2) / (2 * 0.03 ** 2))[..., None]
-    return mi.Bitmap((img + 60.0 * spot).astype(np.float32))
+    path = tmp / "sky.exr"
+    if not path.exists():
+        mi.Bitmap(np.ascontiguousarray(img + 60.0 * spot, dtype=np.float32)).write(str(path))
+    return str(path)
 
 
-def scene(case: Case, res: int, tmp: Path) -> mi.Scene:
+def scene(case: Case, res: int, tmp: Path, extra: dict | None = None) -> mi.Scene:
+    """The case's scene; ``extra``: properties added to its grid medium (load one scene
+    per case and vary the medium with :func:`set_medium`)."""
     d = {"type": "scene",
          "sensor": {"type": "perspective", "fov": 40,
                     "to_world": mi.ScalarTransform4f().look_at([0.2, 0.9, 3.2], [0, 0, 0],
@@ -168,7 +184,7 @@ def scene(case: Case, res: int, tmp: Path) -> mi.Scene:
                     "film": {"type": "hdrfilm", "width": res, "height": res,
                              "rfilter": {"type": "box"}},
                     "sampler": {"type": "independent", "sample_count": 16}},
-         "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium(case, tmp)}}
+         "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium(case, tmp, extra)}}
     floor = {"type": "rectangle", "bsdf": {"type": "diffuse",
                                            "reflectance": {"type": "rgb", "value": 0.5}},
              "to_world": mi.ScalarTransform4f().translate([0, -1.0, 0]).rotate(
@@ -185,16 +201,32 @@ def scene(case: Case, res: int, tmp: Path) -> mi.Scene:
                  sun={"type": "directional", "direction": [-0.6, -1.0, -0.4],
                       "irradiance": {"type": "rgb", "value": 3.0}})
     else:
-        d.update(env={"type": "envmap", "bitmap": sky()})
+        d.update(env={"type": "envmap", "filename": sky(tmp)})
     return mi.load_dict(d)
 
 
 # -- measurements -----------------------------------------------------------------------------
-def reference(scene, spp: int) -> np.ndarray:
-    integ = mi.load_dict(REFERENCE)
+def reference(scene, spp: int, variant: dict = REFERENCE, seed: int = 7 * 10 ** 6) -> np.ndarray:
+    integ = integrator(variant)
     chunk = min(spp, 256)
-    return np.mean([timed_render(scene, integ, chunk, seed=7 * 10 ** 6 + i)[1]
+    return np.mean([timed_render(scene, integ, chunk, seed=seed + i)[1]
                     for i in range(max(1, spp // chunk))], axis=0)
+
+
+def bias(scene, variants: dict, spp: int, ref) -> dict:
+    """The bias of each variant, from ``spp`` samples of it (seeds unlike the reference's):
+    the relative error of the image's total (``energy``) and the relMSE against the
+    reference, next to ``noise_floor``, the relMSE of as many samples of the unbiased
+    reference integrator (so relMSE - noise_floor estimates bias^2 plus the variant's
+    extra noise)."""
+    ref_sum = float(np.sum(ref))
+    unbiased = reference(scene, spp, seed=9 * 10 ** 6)
+    out = {"noise_floor": stats.rel_mse(unbiased, ref),
+           "noise_floor_energy": float(np.sum(unbiased)) / ref_sum - 1}
+    for k, v in variants.items():
+        img = reference(scene, spp, v, seed=8 * 10 ** 6)
+        out[k] = {"rel_mse": stats.rel_mse(img, ref), "energy": float(np.sum(img)) / ref_sum - 1}
+    return out
 
 
 def bootstrap_ratio(ours, builtin, n: int = 2000, seed: int = 1) -> tuple:
@@ -206,26 +238,56 @@ def bootstrap_ratio(ours, builtin, n: int = 2000, seed: int = 1) -> tuple:
     return float(np.quantile(r, 0.05)), float(np.quantile(r, 0.95))
 
 
+def integrator(variant: dict):
+    return mi.load_dict({k: v for k, v in variant.items() if k != "medium"})
+
+
+def set_medium(scene, extra: dict | None) -> None:
+    """Give the scene's grid medium a variant's ``medium`` properties (only
+    ``majorant_resolution``; absent: the automatic choice), in place. One medium instance
+    per scene on purpose: every live medium joins the virtual-call domain of the
+    kernels, and with 8 scenes of this family loaded volpath ran 1.8x slower (ours 1.3x),
+    which would skew any comparison between scenes loaded side by side."""
+    extra = dict(extra or {})
+    cells = extra.pop("majorant_resolution", None)
+    assert not extra, f"unsupported medium properties {extra}"
+    for shape in scene.shapes():
+        m = shape.interior_medium()
+        if m is not None and hasattr(m, "auto_cells"):
+            from mitsuba_plugins.majorant import DEFAULT_RESOLUTION
+            m.cells, m.auto_cells = cells or DEFAULT_RESOLUTION, cells is None
+            m.parameters_changed()
+
+
+def render_variant(scene, integ, variant, spp: int, seed: int):
+    set_medium(scene, (variant or {}).get("medium"))
+    return timed_render(scene, integ, spp, seed)
+
+
 def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
-    integ = {"builtin": mi.load_dict(BUILTIN), **{k: mi.load_dict(v) for k, v in variants.items()}}
+    integ = {"builtin": mi.load_dict(BUILTIN), **{k: integrator(v) for k, v in variants.items()}}
+    variant = {"builtin": None, **variants}
     per_spp = {}
     for k, i in integ.items():                         # compile, then time one render
-        timed_render(scene, i, spp, seed=10 ** 6)
-        per_spp[k] = timed_render(scene, i, spp, seed=10 ** 6 + 1)[0] / spp
+        render_variant(scene, i, variant[k], spp, seed=10 ** 6)
+        per_spp[k] = render_variant(scene, i, variant[k], spp, seed=10 ** 6 + 1)[0] / spp
     n = {k: max(1, int(round(spp * per_spp["builtin"] / per_spp[k]))) for k in integ}
     times = {k: [] for k in integ}
     errors = {k: [] for k in integ}
     order = list(integ)
     for run in range(runs):
         for k in (order if run % 2 == 0 else order[::-1]):
-            t, img = timed_render(scene, integ[k], n[k], seed=run)
+            t, img = render_variant(scene, integ[k], variant[k], n[k], seed=run)
             assert np.isfinite(img).all(), f"{k}: non-finite pixels"
             times[k].append(t)
             errors[k].append(stats.rel_mse(img, ref))
     out = {}
     for k in integ:
         t, e = statistics.median(times[k]), float(np.mean(errors[k]))
-        out[k] = {"spp": n[k], "median_s": t, "rel_mse": e, "rel_mse_runs": errors[k],
+        if max(times[k]) > 3 * min(times[k]):
+            print(f"warning: {k}: render times vary more than 3x: {times[k]}", flush=True)
+        out[k] = {"spp": n[k], "median_s": t, "times_s": times[k], "rel_mse": e,
+                  "rel_mse_runs": errors[k],
                   "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k]}
     base = out["builtin"]
     for k in variants:
@@ -240,7 +302,7 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
 def profile(scene, spp: int) -> dict:
     counters = walk.count_collisions()
     res = scene.sensors()[0].film().size()
-    mi.render(scene, integrator=mi.load_dict(VARIANTS["old_default"]), spp=spp, seed=99)
+    mi.render(scene, integrator=integrator(VARIANTS["old_default"]), spp=spp, seed=99)
     c = np.array(counters, dtype=np.float64) / (spp * res[0] * res[1])
     walk.count_collisions(False)
     out = dict(zip(walk.COUNTER_SLOTS, map(float, c)))
@@ -248,9 +310,9 @@ def profile(scene, spp: int) -> dict:
     return out
 
 
-def rel_variance(scene, integrator: dict, spp: int, runs: int) -> float:
+def rel_variance(scene, variant: dict, spp: int, runs: int) -> float:
     """Relative variance per sample: mean over pixels of var / (mean^2 + eps), x spp."""
-    integ = mi.load_dict(integrator)
+    integ = integrator(variant)
     imgs = np.array([timed_render(scene, integ, spp, seed=1000 + r)[1] for r in range(runs)])
     mean = imgs.mean(0)
     return float(np.mean(imgs.var(0, ddof=1) / (mean ** 2 + stats.REL_MSE_EPS)) * spp)
@@ -272,6 +334,63 @@ def variance_split(scene, case: Case, spp: int, runs: int) -> dict:
             out[f"transmittance={m}"] = rel_variance(scene, {**base, "transmittance": m}, spp,
                                                      runs)
     return out
+
+
+SWEEP = (1, 2, 4, 8, 16, 32)
+
+
+def majorant_sweep(case: Case, res: int, spp: int, runs: int, tmp: Path) -> dict:
+    """volpath_delta (defaults) with the majorant grid at each resolution of :data:`SWEEP`
+    and the automatic choice: time per sample (median of ``runs`` alternating renders of
+    ``spp``), relative variance per sample (over the same renders) and efficiency, each
+    relative to volpath's."""
+    from mitsuba_plugins.majorant import DEFAULT_RESOLUTION
+    configs = {"volpath": None, "auto": {"medium": {}},
+               **{str(n): {"medium": {"majorant_resolution": n}} for n in SWEEP}}
+    sc = scene(case, res, tmp)
+    integ = {k: mi.load_dict(BUILTIN if v is None else VARIANTS["volpath_delta"])
+             for k, v in configs.items()}
+    for k in configs:
+        render_variant(sc, integ[k], configs[k], spp, seed=10 ** 6)
+    times, imgs = {k: [] for k in configs}, {k: [] for k in configs}
+    order = list(configs)
+    for run in range(runs):
+        for k in (order if run % 2 == 0 else order[::-1]):
+            t, img = render_variant(sc, integ[k], configs[k], spp, seed=1000 + run)
+            times[k].append(t)
+            imgs[k].append(img)
+
+    def rel_var(k):
+        a = np.array(imgs[k])
+        return float(np.mean(a.var(0, ddof=1) / (a.mean(0) ** 2 + stats.REL_MSE_EPS)) * spp)
+    t0, v0 = statistics.median(times["volpath"]), rel_var("volpath")
+    set_medium(sc, None)
+    grid = next(sh for sh in sc.shapes() if sh.interior_medium() is not None)
+    out = {"auto_resolution": list(grid.interior_medium().majorant_grid.resolution),
+           "default_before": DEFAULT_RESOLUTION}
+    for k in order[1:]:
+        t, v = statistics.median(times[k]) / t0, rel_var(k) / v0
+        out[k] = {"time": t, "variance": v, "efficiency": 1.0 / (t * v)}
+    return out
+
+
+def sweep_markdown(result: dict) -> str:
+    cfg = result["config"]
+    cols = ["auto"] + [str(n) for n in SWEEP]
+    lines = [
+        "# Majorant grid resolution on the dense family (volpath_delta against volpath)", "",
+        f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
+        f"`python3 benchmarks/dense.py {cfg['argv']}` (res {cfg['res']}, {cfg['spp']} spp, "
+        f"{cfg['runs']} alternating renders of each: time = median time / volpath's, variance = "
+        "relative variance per sample over the renders / volpath's, efficiency = 1 / (time x "
+        "variance)). Columns: the automatic choice (`majorant.auto_resolution`, the default) "
+        "and fixed cells per axis (16 was the default before).", "",
+        "| scene | auto picks | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
+    for name, r in result["cases"].items():
+        lines.append(f"| {name} | {r['auto_resolution'][0]} | " + " | ".join(
+            f"**{r[c]['efficiency']:.2f}x** ({r[c]['time']:.2f} time, {r[c]['variance']:.2f} var)"
+            for c in cols) + " |")
+    return "\n".join(lines) + "\n"
 
 
 # -- report -------------------------------------------------------------------------------------
@@ -303,6 +422,22 @@ def markdown(result: dict) -> str:
         lines.append(f"| {label} | " + " | ".join(
             f"{fn(r['efficiency'][v]['efficiency_ratio'] for r in result['cases'].values()):.2f}x"
             for v in variants) + " |")
+    if any("bias" in r for r in result["cases"].values()):
+        biased = [k for k in next(r["bias"] for r in result["cases"].values() if "bias" in r)
+                  if not k.startswith("noise_floor")]
+        lines += ["", f"## Bias ({cfg['ref_spp']} spp of each against the reference: relative "
+                  "error of the image total, and relMSE next to that of as many samples of the "
+                  "unbiased reference integrator)", "",
+                  "| scene | unbiased: total, relMSE | " + " | ".join(
+                      f"{k}: total, relMSE" for k in biased) + " |",
+                  "|---|---|" + "---|" * len(biased)]
+        for name, r in result["cases"].items():
+            if "bias" in r:
+                b = r["bias"]
+                lines.append(f"| {name} | {100 * b['noise_floor_energy']:+.2f}%, "
+                             f"{b['noise_floor']:.2e} | " + " | ".join(
+                                 f"{100 * b[k]['energy']:+.2f}%, {b[k]['rel_mse']:.2e}"
+                                 for k in biased) + " |")
     if any("profile" in r for r in result["cases"].values()):
         slots = list(next(r["profile"] for r in result["cases"].values() if "profile" in r))
         lines += ["", "## Where the time goes (volpath_delta with the defaults before issue "
@@ -336,8 +471,15 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(c.name for c in FAMILY))
     ap.add_argument("--variants", default="volpath_delta")
     ap.add_argument("--no-profile", action="store_true", help="skip the time/variance profile")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "dense"))
+    ap.add_argument("--bias", default="", help="variants whose bias to measure (ref-spp "
+                    "samples each against the reference), comma-separated")
+    ap.add_argument("--majorant-sweep", action="store_true",
+                    help="time and variance per majorant resolution instead (heterogeneous cases)")
+    ap.add_argument("--out", default=None, help="results path without suffix (default: "
+                    "benchmarks/results/dense, or dense_majorant with --majorant-sweep)")
     args = ap.parse_args()
+    out = Path(args.out or ROOT / "benchmarks" / "results" /
+               ("dense_majorant" if args.majorant_sweep else "dense"))
     variants = {v: VARIANTS[v] for v in args.variants.split(",")}
     cases = [c for c in FAMILY if c.name in args.cases.split(",")]
     result = {"date": datetime.date.today().isoformat(), "cpu": device_model(VARIANT),
@@ -345,19 +487,36 @@ def main() -> None:
               "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
                          "ref_spp": args.ref_spp, "reference": REFERENCE, "variants": list(variants),
                          "argv": " ".join(sys.argv[1:])}}
+    if args.majorant_sweep:
+        with tempfile.TemporaryDirectory() as tmpdir:
+            for case in cases:
+                if case.shape == "homogeneous":
+                    continue
+                result["cases"][case.name] = majorant_sweep(case, args.res, args.spp,
+                                                            args.runs, Path(tmpdir))
+                print(case.name, {k: round(v["efficiency"], 2) for k, v in
+                                  result["cases"][case.name].items() if isinstance(v, dict)},
+                      flush=True)
+                output.write_json(out.with_suffix(".json"), result, indent=1)
+                output.write_text(out.with_suffix(".md"), sweep_markdown(result))
+        return
     with tempfile.TemporaryDirectory() as tmpdir:
         for case in cases:
             sc = scene(case, args.res, Path(tmpdir))
             ref = reference(sc, args.ref_spp)
             r = {"case": asdict(case),
                  "efficiency": equal_time(sc, variants, args.spp, args.runs, ref)}
+            if args.bias:
+                r["bias"] = bias(sc, {v: VARIANTS[v] for v in args.bias.split(",")},
+                                 args.ref_spp, ref)
             if not args.no_profile:
+                set_medium(sc, VARIANTS["old_default"]["medium"])
                 r["profile"] = profile(sc, args.spp)
                 r["variance"] = variance_split(sc, case, args.spp, max(4, args.runs))
+            set_medium(sc, None)
             result["cases"][case.name] = r
             print(case.name, ", ".join(f"{v} {r['efficiency'][v]['efficiency_ratio']:.2f}x"
                                        for v in variants), flush=True)
-            out = Path(args.out)
             output.write_json(out.with_suffix(".json"), result, indent=1)
             output.write_text(out.with_suffix(".md"), markdown(result))
     print(markdown(result))

@@ -9,7 +9,7 @@ import numpy as np
 
 from mitsuba_plugins import bricks, gridio
 from mitsuba_plugins.majorant import (DEFAULT_RESOLUTION, MARGIN, MajorantBuilder, MajorantGrid,
-                                      resolution_for, voxel_ranges)
+                                      auto_resolution, pool, resolution_for, voxel_ranges)
 from mitsuba_plugins.params import Params, PluginParameterError
 
 VARIANT = mi.variant()
@@ -109,7 +109,9 @@ class GridMedium(mi.Medium):
        - |int|
        - Cells per axis of the majorant grid, in [1, 1024] (capped at the grid's
          resolution; for a sparse grid above 256^3 voxels at its bricks per axis, the
-         bounds then being the bricks' extrema). (Default: 16)
+         bounds then being the bricks' extrema). (Default: chosen per grid among 1, 2, 4,
+         8 and 16 by the expected lookups plus cells crossed per unit length: few cells
+         for a thin medium, 16 for a dense heterogeneous one)
      * - has_spectral_extinction
        - |bool|
        - Tell integrators the extinction differs between channels. (Default: true when it
@@ -169,6 +171,8 @@ class GridMedium(mi.Medium):
         self.emission = _volume(p, "emission", None) if p.has("emission") else None
         self.emission_grid = None   # (SparseGrid, to_local) of ``emission_grid``
         self.cells = p.int("majorant_resolution", DEFAULT_RESOLUTION, lo=1, hi=1024)
+        #: not given: coarsen the bounds per grid (majorant.auto_resolution)
+        self.auto_cells = not p.has("majorant_resolution")
         self.filename = None
         self.sparse = None  # SparseGrid when the filename grid is stored in bricks
         self.volume = None  # nested sigma_t volume (no filename)
@@ -317,6 +321,10 @@ class GridMedium(mi.Medium):
             # heterogeneous's majorant is scale * volume.max(); keep it bit for bit.
             grid_max = np.float32(self.volume.max() if self.volume is not None else builder.max)
         scale = np.float32(_floats(self.scale)[0])
+        if self.auto_cells and to_local is not None and values.size > 1:
+            shape = auto_resolution(values, float(scale),
+                                    np.linalg.norm(_world_linear(to_local), axis=0))
+            values, lows = pool(values, shape), pool(lows, shape, np.min)
         with np.errstate(over="ignore", invalid="ignore"):
             majorant, cells = scale * grid_max, values * scale
         self._check_extinction(float(_floats(self.scale)[0]), float(grid_max), majorant, cells)

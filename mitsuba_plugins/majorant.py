@@ -111,6 +111,50 @@ def build_majorants(data: np.ndarray, resolution, weights=1.0, margin: float = M
     return MajorantBuilder(data.shape, resolution, weights, margin).add_all(data, slab).finish()
 
 
+def pool(values: np.ndarray, shape, op=np.max) -> np.ndarray:
+    """Cell bounds ``(Rz, Ry, Rx)`` carried to a coarser ``shape`` ``(rz, ry, rx)``: each
+    coarse cell takes ``op`` (np.max for majorants, np.min for minorants) over every fine
+    cell it overlaps, so a bound of the fine grid stays a bound of the coarse one (the
+    fine cells' margins included) for any ratio of resolutions."""
+    out = np.asarray(values)
+    for axis, r in enumerate(shape):
+        n = out.shape[axis]
+        c = np.arange(r)
+        lo, hi = (c * n) // r, -((-(c + 1) * n) // r)     # floor(c n / r), ceil((c+1) n / r)
+        out = np.stack([op(out.take(np.arange(a, b), axis=axis), axis=axis)
+                        for a, b in zip(lo, hi)], axis=axis)
+    return out
+
+
+#: Resolutions per axis the automatic choice (:func:`auto_resolution`) tries.
+AUTO_RESOLUTIONS = (1, 2, 4, 8, 16)
+#: Cost of one DDA step (one majorant cell crossed) in units of one density lookup (a
+#: tentative collision). Fit by hand on the 8 grids of benchmarks/dense.py's family (issue
+#: 16), so in-sample: with 1, the resolution chosen had the lowest time per sample of 1-32
+#: cells per axis on 7 of them and was within 1% on the eighth, where a fixed 16 (the
+#: former default) was up to 1.32x slower (``benchmarks/results/dense_majorant.md``).
+CELL_COST = 1.0
+
+
+def auto_resolution(values: np.ndarray, scale: float, axis_lengths,
+                    candidates=AUTO_RESOLUTIONS, cell_cost: float = CELL_COST) -> tuple:
+    """The coarsening ``(rz, ry, rx)`` of the cell bounds ``values`` (before ``scale``) that
+    minimises the expected work per unit of ray length through the box: density lookups
+    (mean majorant x scale x the world length of a local axis, ``axis_lengths``) plus
+    ``cell_cost`` per cell crossed (cells per axis). Thin media get few cells (the DDA's
+    steps would outnumber the lookups they save), dense heterogeneous ones fine cells."""
+    length = float(np.mean(axis_lengths))
+    best, best_cost = tuple(values.shape), np.inf
+    for n in candidates:
+        shape = tuple(min(n, r) for r in values.shape)
+        with np.errstate(over="ignore", invalid="ignore"):
+            cost = float(np.mean(pool(values, shape))) * scale * length + \
+                cell_cost * float(np.mean(shape))
+        if cost < best_cost:      # ties keep the coarser; NaN never wins
+            best, best_cost = shape, cost
+    return best
+
+
 def resolution_for(shape, cells: int) -> tuple:
     """(Rx, Ry, Rz): ``cells`` per axis, never more than the axis has voxels."""
     z, y, x = shape[:3]

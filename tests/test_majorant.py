@@ -6,8 +6,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from helpers import grid
 from mitsuba_plugins import gridio
-from mitsuba_plugins.majorant import MajorantGrid, build_majorants, voxel_ranges
+from mitsuba_plugins.majorant import (MajorantBuilder, MajorantGrid, auto_resolution,
+                                      build_majorants, pool, voxel_ranges)
 
 N_RAYS = 4096
 
@@ -88,6 +90,18 @@ def test_segment_majorant_bounds_extinction(tmp_path, interpolation, transform, 
         "interpolation": interpolation, "to_world": TRANSFORMS[transform],
         "sigma_t": [1.0, 0.7, 0.2] if not chromatic else 1.0, "majorant_resolution": 8})
     grid = medium.majorant_grid
+    assert grid.resolution == (8, 8, 8)         # given: honoured, not chosen
+    _check_bounds(medium, grid)
+    # ... and the grid is doing something: many cells, and segments, bound far below
+    # the global majorant (the shell leaves most cells empty).
+    glob = float(medium.global_majorant[0])
+    assert np.mean(grid.host_values < 0.5 * glob) > 0.3
+    assert grid.empty_fraction() > 0.2
+
+
+def _check_bounds(medium, grid):
+    """Along every segment of random rays, sigma_t at random points (all channels) <=
+    sigma_maj; returns the segments' majorants."""
     rng = np.random.default_rng(3)
     ray, _, _ = _rays(rng, N_RAYS, spread=3.0)
     t0, t1, sigma_maj, valid = grid.segments(ray, 0.0, 8.0)
@@ -104,12 +118,45 @@ def test_segment_majorant_bounds_extinction(tmp_path, interpolation, transform, 
     bound = np.repeat(sigma_maj[rows, cols], k)
     worst = np.max(sigma_t - bound)
     assert worst <= 0.0, f"sigma_t exceeds the segment majorant by {worst}"
-    # ... and the grid is doing something: many cells, and segments, bound far below
-    # the global majorant (the shell leaves most cells empty).
-    glob = float(medium.global_majorant[0])
-    assert np.mean(grid.host_values < 0.5 * glob) > 0.3
-    assert np.sum(sigma_maj[valid] < 0.5 * glob) > 100
-    assert grid.empty_fraction() > 0.2
+    return sigma_maj[valid]
+
+
+def test_pool_keeps_bounds():
+    """Cell bounds carried to a coarser grid (any ratio, the automatic choice's step)
+    bound what a direct build at that resolution bounds: max >= its maxima, min <= its
+    minima, and both stay within the data's range."""
+    rng = np.random.default_rng(11)
+    data = rng.gamma(0.5, 1.0, (40, 36, 48, 1)).astype(np.float32)
+    fine = MajorantBuilder(data.shape, (16, 12, 10)).add_all(data)
+    hi, lo = fine.finish(), fine.finish_min()
+    assert hi.shape == (10, 12, 16)
+    for shape in ((1, 1, 1), (5, 6, 8), (3, 5, 7), (10, 12, 16)):
+        direct = MajorantBuilder(data.shape, shape[::-1]).add_all(data)
+        assert np.all(pool(hi, shape) >= direct.finish() * (1 - 1e-6))
+        assert np.all(pool(lo, shape, np.min) <= direct.finish_min() * (1 + 1e-6))
+        assert pool(hi, shape).max() == hi.max() and pool(lo, shape, np.min).min() == lo.min()
+
+
+def test_auto_resolution_follows_density(tmp_path):
+    """Not given, the majorant resolution is chosen per grid: one cell for a thin
+    medium (DDA steps would cost more than the lookups they save), the full 16 for a
+    dense one with empty space; either way every segment still bounds sigma_t."""
+    values = np.zeros((16, 16, 16), np.float32)
+    values[5, 1, 9] = values[11, 0, 2] = 1.0      # isolated cells: each coarsening costs
+    assert auto_resolution(values, 0.1, [1, 1, 1]) == (1, 1, 1)
+    assert auto_resolution(values, 1e4, [1, 1, 1]) == (16, 16, 16)
+    assert auto_resolution(values[:, :2, :], 1e4, [1, 1, 1]) == (16, 2, 16)   # capped
+    gridio.write_vol(tmp_path / "shell.vol", _shell())
+    picked = {}
+    for scale in (0.05, 50.0):
+        medium = mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "shell.vol"),
+                               "scale": scale})
+        picked[scale] = medium.majorant_grid.resolution
+        maj = _check_bounds(medium, medium.majorant_grid)
+        assert np.all(maj <= float(medium.global_majorant[0]) * (1 + 1e-5))
+    assert picked == {0.05: (1, 1, 1), 50.0: (16, 16, 16)}, picked
+    thin = mi.load_dict(grid(scale=0.5))     # test_volpath_delta's thin_grid_one_cell
+    assert thin.majorant_grid.resolution == (1, 1, 1)
 
 
 def test_majorant_values_are_cell_maxima():

@@ -71,6 +71,8 @@ CASES = {
     "hg_forward": lambda: media_scene(homogeneous(2.0, albedo=0.9, g=0.95)),
     "smoke_grid_medium": lambda: load("smoke", res=RES),
     "smoke_heterogeneous": lambda: load("smoke_heterogeneous", res=RES),
+    # thin: the automatic majorant resolution is one cell (the global majorant)
+    "thin_grid_one_cell": lambda: media_scene(grid(scale=0.5)),
     "chromatic_grid_medium": lambda: load("chromatic", res=RES),
     "sparse_grid_medium": lambda: load("sparse", res=RES),
     "dielectric_and_nested": _nested,
