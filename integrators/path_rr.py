@@ -28,7 +28,7 @@ class PathRR(PathIntegrator):
        - Path depth (>= 1) at which Russian roulette starts. (Default: 5)
      * - rr_rule
        - |string|
-       - ``throughput``: survival ``clamp(max(beta) * eta^2, rr_min_survival, 0.95)``
+       - ``throughput``: survival ``clamp(max(beta) * eta^2, rr_min_survival, rr_max_survival)``
          (Mitsuba's rule when ``rr_min_survival = 0``); ``fixed``: survival
          ``rr_survival`` at every vertex. (Default: ``throughput``)
      * - rr_survival
@@ -38,6 +38,9 @@ class PathRR(PathIntegrator):
        - |float|
        - Lower clamp of the ``throughput`` rule, in [0, 0.95]: bounds the weight 1/s a
          surviving path can gain (fewer fireflies). (Default: 0)
+     * - rr_max_survival
+       - |float|
+       - Upper clamp of the ``throughput`` rule, in (0, 0.9999]. (Default: 0.95, Mitsuba's)
      * - emitter_selection
        - |string|
        - ``uniform`` (Mitsuba's) or ``power`` (proportional to emitted flux). (Default: ``uniform``)

@@ -59,6 +59,10 @@ class VolpathRaymarch(VolumetricIntegrator):
      * - rr_depth
        - |int|
        - Depth (>= 1) at which Russian roulette starts. (Default: 5)
+     * - rr_max_survival
+       - |float|
+       - Cap of the roulette's survival probability, in (0, 0.9999]. (Default: 0.95,
+         Mitsuba's; 0.99-0.999 for albedo near 1, see benchmarks/results/dense_raymarch.md)
      * - hide_emitters
        - |bool|
        - Hide emitters seen directly (also through media). (Default: false)
