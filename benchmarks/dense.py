@@ -69,10 +69,6 @@ VARIANTS = {
                         "rr_max_survival": 0.95},
     "residual_rr0.999": {"type": "volpath_delta", "transmittance": "residual",
                          "rr_max_survival": 0.999},
-    "um_rr0.99": {"type": "volpath_delta", "transmittance": "unbiased_march",
-                  "rr_max_survival": 0.99},
-    "um_rr0.999": {"type": "volpath_delta", "transmittance": "unbiased_march",
-                   "rr_max_survival": 0.999},
     "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
     "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }

@@ -43,8 +43,7 @@ class VolpathDelta(VolumetricIntegrator):
        - |string|
        - Shadow-ray transmittance estimator in heterogeneous media: ``ratio`` (ratio
          tracking with roulette below 0.1), ``residual`` (residual ratio tracking, the
-         majorant grid's per-cell minorant as control), ``track_length`` or
-         ``unbiased_march`` (Kettunen et al. 2021's unbiased ray marching).
+         majorant grid's per-cell minorant as control) or ``track_length``.
          (Default: ``residual``)
      * - hide_emitters
        - |bool|

@@ -128,13 +128,8 @@ class NullCollisionRule:
         active = active & alive
         count(self.slot, active & collide if self.counts_null_only else collide)
         redraw = active & collide
-        state.tau = dr.select(redraw, self.distance(sampler, redraw), state.tau)
+        state.tau = dr.select(redraw, -dr.log(1.0 - sampler.next_1d(redraw)), state.tau)
         return t, state, active
-
-    def distance(self, sampler, active) -> mi.Float:
-        """Optical depth (at rate ``sigma_maj - sigma_c``) to the next tentative collision:
-        exponential by default."""
-        return -dr.log(1.0 - sampler.next_1d(active))
 
     def travel(self, state, seg, step, active) -> None:
         """Weight for travelling ``step`` without a tentative collision (none by default)."""
@@ -154,7 +149,6 @@ class RatioTracking(NullCollisionRule):
     ``max(T) < 0.1``: die with ``q = max(0.05, 1 - max(T))``, else ``T /= 1 - q``."""
     label = "ratio_tracking"
     budget = "T"
-    nonnegative = True              # every estimate is >= 0
 
     def start(self, tracker, ray, t_in, t_out, sampler, active):
         return TransmittanceState(-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(1.0))
@@ -208,120 +202,9 @@ class TrackLength(RatioTracking):
         return dr.any(state.T > 0)
 
 
-class LatticeState:
-    DRJIT_STRUCT = {"tau": mi.Float,        # majorant optical depth to the next point
-                    "X": mi.Spectrum,       # optical-depth estimate so far
-                    "weight": mi.Float}     # 1 / survival of the roulette so far
-
-    def __init__(self, tau=None, X=None, weight=None):
-        self.tau, self.X, self.weight = tau, X, weight
-
-
-#: Optical depth of the pivot march past which it plays roulette (T < 7e-3 there).
-LATTICE_ROULETTE = 5.0
-#: The series of :class:`UnbiasedMarch` goes on to term k+1 with probability
-#: min(0.95, |expected term k+1| / this).
-SERIES_TERM = 0.05
-
-
-class LatticeOpticalDepth(NullCollisionRule):
-    r"""An unbiased optical-depth estimate with stratified lookups: points every
-    ``spacing`` of *majorant* optical depth, the first at ``u spacing`` (one jitter per
-    walk), each adding ``sigma_t / sigma_maj * spacing``. The points are a jittered
-    lattice in the majorant optical depth ``s(t) = int sigma_maj``, so
-    ``E[X] = int sigma_t / sigma_maj ds = tau`` exactly, and only the two ends of the
-    ray, not every majorant segment, add lattice error. It is ratio tracking's walk with
-    evenly spaced instead of exponential steps (:meth:`distance`).
-
-    ``roulette`` (the pivot): once ``X`` passes :data:`LATTICE_ROULETTE`, each further
-    increase ``dX`` survives with probability ``exp(-dX)`` and ``weight`` takes 1 / that,
-    so a deep shadow ray stops after a few lookups and ``weight exp(-X)`` stays below
-    ``exp(-LATTICE_ROULETTE)``."""
-    label = "lattice_optical_depth"
-    budget = "weight"
-
-    def __init__(self, spacing: mi.Float, roulette: bool):
-        self.spacing, self.roulette = spacing, roulette
-
-    def start(self, tracker, ray, t_in, t_out, sampler, active):
-        return LatticeState(sampler.next_1d(active) * self.spacing, mi.Spectrum(0.0),
-                            mi.Float(1.0))
-
-    def distance(self, sampler, active):
-        return mi.Float(self.spacing)
-
-    def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
-        sigma_t = tracker.sigma_t(medium_interaction(ray, t), collide)
-        X = dr.select(collide, state.X + sigma_t * (self.spacing / rate), state.X)
-        alive = mi.Bool(True)
-        if self.roulette:
-            over = dr.max(X) - dr.maximum(dr.max(state.X), LATTICE_ROULETTE)
-            play = collide & (over > 0)
-            q = dr.exp(-dr.maximum(over, 0.0))
-            alive = ~play | (sampler.next_1d(play) < q)
-            state.weight = dr.select(play, dr.select(alive, state.weight / q, 0.0),
-                                     state.weight)
-        state.X = X
-        return alive
-
-    def finish(self, t, state, t_out, entered):
-        return state
-
-
-class UnbiasedMarch:
-    r"""Unbiased ray-marching transmittance after Kettunen, d'Eon, Pantaleoni and Novak
-    (2021): with independent unbiased optical-depth estimates ``X_0, X_1, ...``
-    (:class:`LatticeOpticalDepth`) and the pivot ``c = X_0``,
-
-    .. math::
-
-        e^{-	au} = e^{-c} \sum_{k\ge 0} rac{(c - 	au)^k}{k!}, \qquad
-        \langle T
-angle = e^{-c} \Big(1 + \sum_{k=1}^{K} \prod_{j=1}^{k}
-        rac{c - X_j}{j\,
-ho_j}\Big),
-
-    since given ``c`` each factor's expectation is ``c - tau``. The number of terms
-    ``K`` is drawn by roulette: term 1 always, term ``k+1`` with probability
-    ``rho_{k+1}`` from the size of term k and of ``c - X_k`` (:data:`SERIES_TERM`).
-    In smooth media the ``X_j`` are nearly exact and the estimate is nearly
-    ``exp(-tau)``, at about ``2 tau_maj / spacing`` lookups; it can be negative.
-    """
-
-    nonnegative = False
-
-    def __init__(self, spacing: float = 0.5):
-        self.spacing_value = spacing
-
-    def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
-                      sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
-        spacing = dr.opaque(mi.Float, self.spacing_value)
-        pivot = walk(tracker, ray, t_max, sampler, LatticeOpticalDepth(spacing, True), active)
-        series = self.series(tracker, ray, t_max, sampler, LatticeOpticalDepth(spacing, False),
-                             pivot.X, active & (pivot.weight > 0))
-        return pivot.weight * dr.exp(-pivot.X) * series
-
-    @dr.syntax
-    def series(self, tracker, ray, t_max, sampler, rule, c, active):
-        total = mi.Spectrum(1.0)
-        term = mi.Spectrum(1.0)
-        k = mi.Float(1.0)
-        active = mi.Bool(active)
-        while dr.hint(active, label="unbiased_march"):
-            x = walk(tracker, ray, t_max, sampler, rule, active).X
-            term[active] = term * (c - x) / k
-            total[active] = total + term
-            rho = dr.minimum(dr.max(dr.abs(term)) * dr.max(dr.abs(c - x)) / (k + 1.0)
-                             / SERIES_TERM, 0.95)
-            active &= sampler.next_1d(active) < rho
-            term[active] = term / rho
-            k[active] = k + 1.0
-        return total
-
-
 #: Shadow-ray transmittance estimators by name (``transmittance`` parameter).
 TRANSMITTANCE_ESTIMATORS = {"ratio": RatioTracking(), "residual": ResidualRatioTracking(),
-                            "track_length": TrackLength(), "unbiased_march": UnbiasedMarch()}
+                            "track_length": TrackLength()}
 
 
 def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,

@@ -23,7 +23,7 @@ BAD = [
     ({"type": "path_rr", "rr_min_survival": 0.99}, "'rr_min_survival' = 0.99 is invalid; allowed: a finite number >= 0 and <= 0.95"),
     ({"type": "path_rr", "rr_max_survival": 0.0}, "'rr_max_survival' = 0.0 is invalid; allowed: a finite number > 0 and <= 0.9999"),
     ({"type": "volpath_delta", "rr_max_survival": 1.0}, "'rr_max_survival' = 1.0 is invalid; allowed: a finite number > 0 and <= 0.9999"),
-    ({"type": "volpath_delta", "transmittance": "kettunen"}, "'transmittance' = 'kettunen' is invalid; allowed: ratio | residual | track_length | unbiased_march"),
+    ({"type": "volpath_delta", "transmittance": "kettunen"}, "'transmittance' = 'kettunen' is invalid; allowed: ratio | residual | track_length"),
     ({"type": "path_rr", "max_dpeth": 3}, "unknown parameter 'max_dpeth'; allowed: hide_emitters"),
     ({"type": "path_rr", "hide_emitters": True, "samples": 4}, "unknown parameter 'samples'"),
 ]

@@ -103,7 +103,7 @@ def test_chromatic_homogeneous_against_channelwise_gray_references():
     assert_same_expectation(a, b, "volpath_delta-homogeneous_chromatic")
 
 
-@pytest.mark.parametrize("estimator", ["ratio", "residual", "unbiased_march"])
+@pytest.mark.parametrize("estimator", ["ratio", "residual"])
 def test_other_transmittance_estimators_against_volpath(estimator):
     _against_volpath(load("smoke", res=RES), f"volpath_delta-smoke-{estimator}",
                      transmittance=estimator)
@@ -222,9 +222,7 @@ def test_transmittance_estimators_are_unbiased(random_grid, method):
     """Mean of 65536 estimates equals exp(-tau) per channel (t-test, alpha 1e-3)."""
     expected = np.exp(-exact_optical_depth(random_grid))
     samples = transmittance_samples(random_grid, method)
-    assert np.isfinite(samples).all()
-    if estimators.TRANSMITTANCE_ESTIMATORS[method].nonnegative:
-        assert (samples >= 0).all()
+    assert np.isfinite(samples).all() and (samples >= 0).all()
     for c in range(3):
         res = stats.t_test(samples[c], float(expected[c]))
         assert res.p > 1e-3, f"{method} channel {c}: exp(-tau) = {expected[c]:.5f}, {res.summary()}"
