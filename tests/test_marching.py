@@ -102,7 +102,7 @@ def test_majorant_mode_crosses_empty_space_in_one_step(tmp_path):
     data[6:10, 6:10, 6:10] = 50.0
     np.save(tmp_path / "block.npy", data)
     tracker = contract.MediumTracker(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
-                                                       scale=1.0)))
+                                                       scale=1.0, majorant_resolution=16)))
     ray = mi.Ray3f(mi.Point3f(-3, 0.01, 0.02), mi.Vector3f(1, 0, 0))
     cells, tmin, tmax = _cells(marching.Marcher("majorant", 0.05, 0.25), tracker, ray, 10.0, 0.5)
     assert cells[0, 0] == tmin and cells[-1, 1] == tmax
