@@ -321,10 +321,13 @@ class GridMedium(mi.Medium):
             # heterogeneous's majorant is scale * volume.max(); keep it bit for bit.
             grid_max = np.float32(self.volume.max() if self.volume is not None else builder.max)
         scale = np.float32(_floats(self.scale)[0])
+        fine = None   # the bounds as built, when tracking gets coarser ones
         if self.auto_cells and to_local is not None and values.size > 1:
             shape = auto_resolution(values, float(scale),
                                     np.linalg.norm(_world_linear(to_local), axis=0))
-            values, lows = pool(values, shape), pool(lows, shape, np.min)
+            if shape != values.shape:
+                fine = values
+                values, lows = pool(values, shape), pool(lows, shape, np.min)
         with np.errstate(over="ignore", invalid="ignore"):
             majorant, cells = scale * grid_max, values * scale
         self._check_extinction(float(_floats(self.scale)[0]), float(grid_max), majorant, cells)
@@ -337,6 +340,11 @@ class GridMedium(mi.Medium):
         self.global_majorant = dr.opaque(mi.Float, float(majorant))
         self.majorant_grid = MajorantGrid(cells, to_local, float(majorant),
                                           minorants=lows * scale)
+        #: the finest bounds, for marches whose steps shrink with the bound (majorant
+        #: step mode): the automatic coarsening weighs lookups against tracking's DDA
+        #: steps, a march takes step_optical_depth / sigma_maj steps per unit length
+        self.march_grid = self.majorant_grid if fine is None else \
+            MajorantGrid(fine * scale, to_local, float(majorant))
 
     def _has_hot_cells(self, cells: np.ndarray, to_local) -> bool:
         """Can a ray cross a majorant cell with optical depth (bound x length) above

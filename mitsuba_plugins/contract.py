@@ -37,7 +37,9 @@ class TrackedMedium(Protocol):
     A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
 
     * ``majorant_grid``: a :class:`~mitsuba_plugins.majorant.MajorantGrid` whose segments
-      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py);
+      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py), and
+      ``march_grid``, one as tight as the medium has (it may equal ``majorant_grid``),
+      for marches in ``majorant`` step mode;
     * ``refinement``: ``(voxels per local unit, trilinear)`` when a segment can be hot
       (see :func:`mitsuba_plugins.walk.refined_piece`), else None;
     * ``eval_sigma_t(mei, active)``, ``eval_albedo(mei, active)`` and
@@ -50,6 +52,7 @@ class TrackedMedium(Protocol):
     """
     PROVIDES_TRACKING: bool
     majorant_grid: MajorantGrid
+    march_grid: MajorantGrid
     refinement: Optional[tuple]
     has_emission: bool
     is_chromatic: bool
@@ -88,6 +91,8 @@ class MediumTracker:
         #: keeps a work budget (``extent``: the longest stretch a ray can travel)
         if self.is_grid:
             self.grid = medium.majorant_grid
+            #: the bounds a ``majorant``-mode march steps by (the tightest there are)
+            self.march_grid = medium.march_grid
             self.hot = self.voxels is not None
         else:
             # One segment over the whole ray: a 1-cell grid whose value equals the
@@ -96,6 +101,7 @@ class MediumTracker:
             value = float(np.max(np.asarray(majorant)))
             self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
                                      mi.ScalarTransform4f(), value)
+            self.march_grid = self.grid
             self.hot = value * extent > REFINE_OPTICAL_DEPTH
 
     def bounds(self, ray: mi.Ray3f, t_max: mi.Float):

@@ -166,14 +166,14 @@ class MajorantCells:
         return self.start_at(tracker, ray, t_in, t_out, sampler.next_1d(active), active)
 
     def start_at(self, tracker, ray, t_in, t_out, u, active):
-        dda = tracker.grid.start(ray, t_in, t_out, active)
+        dda = tracker.march_grid.start(ray, t_in, t_out, active)
         return MajorantCellState(mi.Float(t_in), mi.Float(t_in), mi.Float(t_in), mi.Float(0.0),
                                  mi.Float(u), dda)
 
     def next(self, tracker, ray, state, t, active):
         fetch = active & (t >= state.t_cell)
-        _, t_cell, sigma_maj, _, dda = tracker.grid.next_bounds(state.dda, fetch,
-                                                                 minorant=False)
+        _, t_cell, sigma_maj, _, dda = tracker.march_grid.next_bounds(state.dda, fetch,
+                                                                       minorant=False)
         empty = sigma_maj <= 0
         dt_new = dr.minimum(self.step_size,
                             self.step_optical_depth / dr.select(empty, 1.0, sigma_maj))

@@ -152,8 +152,11 @@ def test_auto_resolution_follows_density(tmp_path):
         medium = mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "shell.vol"),
                                "scale": scale})
         picked[scale] = medium.majorant_grid.resolution
-        maj = _check_bounds(medium, medium.majorant_grid)
-        assert np.all(maj <= float(medium.global_majorant[0]) * (1 + 1e-5))
+        for g in (medium.majorant_grid, medium.march_grid):
+            maj = _check_bounds(medium, g)
+            assert np.all(maj <= float(medium.global_majorant[0]) * (1 + 1e-5))
+        # marches step by the bound: they keep the finest grid
+        assert medium.march_grid.resolution == (16, 16, 16)
     assert picked == {0.05: (1, 1, 1), 50.0: (16, 16, 16)}, picked
     thin = mi.load_dict(grid(scale=0.5))     # test_volpath_delta's thin_grid_one_cell
     assert thin.majorant_grid.resolution == (1, 1, 1)

@@ -102,11 +102,12 @@ def test_majorant_mode_crosses_empty_space_in_one_step(tmp_path):
     data[6:10, 6:10, 6:10] = 50.0
     np.save(tmp_path / "block.npy", data)
     tracker = contract.MediumTracker(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
-                                                       scale=1.0, majorant_resolution=16)))
+                                                       scale=1.0)))
     ray = mi.Ray3f(mi.Point3f(-3, 0.01, 0.02), mi.Vector3f(1, 0, 0))
     cells, tmin, tmax = _cells(marching.Marcher("majorant", 0.05, 0.25), tracker, ray, 10.0, 0.5)
     assert cells[0, 0] == tmin and cells[-1, 1] == tmax
-    # The box is [-1, 1]^3 on a 16^3 majorant grid: cells of 0.125, 10 of them empty
+    # The box is [-1, 1]^3 on a 16^3 majorant grid (the march grid: the finest bounds,
+    # whatever tracking's automatic resolution): cells of 0.125, 10 of them empty
     # along this ray. Each empty one is one step; the dense ones take steps of
     # step_optical_depth / sigma_maj = 0.25 / 50.
     length = np.diff(cells, axis=1)[:, 0]
