@@ -105,6 +105,24 @@ def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
     assert_same_render(_read_exr(out / "mean.exr"), here.mean)
 
 
+def test_shutdown_and_close_may_both_forget_a_cluster():
+    """An interrupt's shutdown() and the rendering thread's close() can race to drop the
+    same local cluster; whichever comes second must not raise (it did: ValueError, exit 1
+    instead of 130 in test_interrupted_run_leaves_no_mean_and_resumes)."""
+    class Closable:
+        closed = 0
+
+        def close(self, timeout=None):
+            self.closed += 1
+
+    cluster, client = Closable(), Closable()
+    client._mitsuba_plugins_cluster = cluster
+    ref._CLUSTERS.append(cluster)
+    ref.shutdown()
+    ref.close(client)                  # second: nothing left to drop, no error
+    assert cluster not in ref._CLUSTERS and cluster.closed == 2 and client.closed == 1
+
+
 def test_bad_scheduler_fails_in_one_line(tmp_path):
     t0 = time.time()
     proc = start_cli("reference", SCENE, "-i", "path_rr", "--spp", 4, "--passes", 2, "--res", 8,

@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -53,6 +54,7 @@ _SCENES: dict = {}
 _INTEGRATORS: dict = {}
 #: local clusters started here and not closed yet (closed on an interrupt)
 _CLUSTERS: list = []
+_CLUSTERS_LOCK = threading.Lock()
 
 
 class ReferenceError(RuntimeError):
@@ -172,7 +174,16 @@ def close(client) -> None:
     client.close()
     if cluster is not None:
         cluster.close()
-        _CLUSTERS.remove(cluster)
+        _forget(cluster)
+
+
+def _forget(cluster) -> None:
+    """Drop a closed cluster from :data:`_CLUSTERS`, once: an interrupt's
+    :func:`shutdown` and the rendering thread's :func:`close` may both get there (that
+    race once made an interrupted ``reference`` exit 1 with ValueError, not 130)."""
+    with _CLUSTERS_LOCK:
+        if cluster in _CLUSTERS:
+            _CLUSTERS.remove(cluster)
 
 
 def shutdown() -> None:
@@ -182,7 +193,7 @@ def shutdown() -> None:
             cluster.close(timeout=5)
         except Exception:   # already going down
             pass
-        _CLUSTERS.remove(cluster)
+        _forget(cluster)
 
 
 def reference(scene_path: str, integrator: dict, spp: int, passes: int, out_dir,
