@@ -105,7 +105,7 @@ def test_interrupted_run_leaves_no_mean_and_resumes(tmp_path):
     assert_same_render(_read_exr(out / "mean.exr"), here.mean)
 
 
-def test_shutdown_and_close_may_both_forget_a_cluster():
+def test_shutdown_and_close_may_both_forget_a_cluster(monkeypatch):
     """An interrupt's shutdown() and the rendering thread's close() can race to drop the
     same local cluster; whichever comes second must not raise (it did: ValueError, exit 1
     instead of 130 in test_interrupted_run_leaves_no_mean_and_resumes)."""
@@ -117,10 +117,11 @@ def test_shutdown_and_close_may_both_forget_a_cluster():
 
     cluster, client = Closable(), Closable()
     client._mitsuba_plugins_cluster = cluster
-    ref._CLUSTERS.append(cluster)
+    # only this stand-in: shutdown() closes every listed cluster (the module's fixture too)
+    monkeypatch.setattr(ref, "_CLUSTERS", [cluster])
     ref.shutdown()
     ref.close(client)                  # second: nothing left to drop, no error
-    assert cluster not in ref._CLUSTERS and cluster.closed == 2 and client.closed == 1
+    assert ref._CLUSTERS == [] and cluster.closed == 2 and client.closed == 1
 
 
 def test_bad_scheduler_fails_in_one_line(tmp_path):
