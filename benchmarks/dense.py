@@ -42,13 +42,14 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-from surface import device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from surface import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 from volpath_delta import smooth_field  # noqa: E402
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()
 mi.set_variant(VARIANT)
 from mitsuba_plugins import output, volumes, walk  # noqa: E402
+from mitsuba_plugins.majorant import DEFAULT_RESOLUTION  # noqa: E402
 from mitsuba_plugins.tools import stats  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -250,7 +251,6 @@ def set_medium(scene, extra: dict | None) -> None:
     for shape in scene.shapes():
         m = shape.interior_medium()
         if m is not None and hasattr(m, "auto_cells"):
-            from mitsuba_plugins.majorant import DEFAULT_RESOLUTION
             m.cells, m.auto_cells = cells or DEFAULT_RESOLUTION, cells is None
             m.parameters_changed()
 
@@ -268,15 +268,11 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
         render_variant(scene, i, variant[k], spp, seed=10 ** 6)
         per_spp[k] = render_variant(scene, i, variant[k], spp, seed=10 ** 6 + 1)[0] / spp
     n = {k: max(1, int(round(spp * per_spp["builtin"] / per_spp[k]))) for k in integ}
-    times = {k: [] for k in integ}
-    errors = {k: [] for k in integ}
-    order = list(integ)
-    for run in range(runs):
-        for k in (order if run % 2 == 0 else order[::-1]):
-            t, img = render_variant(scene, integ[k], variant[k], n[k], seed=run)
-            assert np.isfinite(img).all(), f"{k}: non-finite pixels"
-            times[k].append(t)
-            errors[k].append(stats.rel_mse(img, ref))
+    times, images = alternate(integ, runs, lambda k, run: render_variant(
+        scene, integ[k], variant[k], n[k], seed=run))
+    for k in integ:
+        assert all(np.isfinite(img).all() for img in images[k]), f"{k}: non-finite pixels"
+    errors = {k: [stats.rel_mse(img, ref) for img in images[k]] for k in integ}
     out = {}
     for k in integ:
         t, e = statistics.median(times[k]), float(np.mean(errors[k]))
@@ -309,9 +305,14 @@ def profile(scene, spp: int) -> dict:
 def rel_variance(scene, variant: dict, spp: int, runs: int) -> float:
     """Relative variance per sample: mean over pixels of var / (mean^2 + eps), x spp."""
     integ = integrator(variant)
-    imgs = np.array([timed_render(scene, integ, spp, seed=1000 + r)[1] for r in range(runs)])
-    mean = imgs.mean(0)
-    return float(np.mean(imgs.var(0, ddof=1) / (mean ** 2 + stats.REL_MSE_EPS)) * spp)
+    return relative_variance([timed_render(scene, integ, spp, seed=1000 + r)[1]
+                              for r in range(runs)], spp)
+
+
+def relative_variance(images, spp: int) -> float:
+    """Mean over pixels of var / (mean^2 + eps) over ``images`` of ``spp`` each, x spp."""
+    a = np.array(images)
+    return float(np.mean(a.var(0, ddof=1) / (a.mean(0) ** 2 + stats.REL_MSE_EPS)) * spp)
 
 
 def variance_split(scene, case: Case, spp: int, runs: int) -> dict:
@@ -340,7 +341,6 @@ def majorant_sweep(case: Case, res: int, spp: int, runs: int, tmp: Path) -> dict
     and the automatic choice: time per sample (median of ``runs`` alternating renders of
     ``spp``), relative variance per sample (over the same renders) and efficiency, each
     relative to volpath's."""
-    from mitsuba_plugins.majorant import DEFAULT_RESOLUTION
     configs = {"volpath": None, "auto": {"medium": {}},
                **{str(n): {"medium": {"majorant_resolution": n}} for n in SWEEP}}
     sc = scene(case, res, tmp)
@@ -348,24 +348,15 @@ def majorant_sweep(case: Case, res: int, spp: int, runs: int, tmp: Path) -> dict
              for k, v in configs.items()}
     for k in configs:
         render_variant(sc, integ[k], configs[k], spp, seed=10 ** 6)
-    times, imgs = {k: [] for k in configs}, {k: [] for k in configs}
-    order = list(configs)
-    for run in range(runs):
-        for k in (order if run % 2 == 0 else order[::-1]):
-            t, img = render_variant(sc, integ[k], configs[k], spp, seed=1000 + run)
-            times[k].append(t)
-            imgs[k].append(img)
-
-    def rel_var(k):
-        a = np.array(imgs[k])
-        return float(np.mean(a.var(0, ddof=1) / (a.mean(0) ** 2 + stats.REL_MSE_EPS)) * spp)
-    t0, v0 = statistics.median(times["volpath"]), rel_var("volpath")
+    times, imgs = alternate(configs, runs, lambda k, run: render_variant(
+        sc, integ[k], configs[k], spp, seed=1000 + run))
+    t0, v0 = statistics.median(times["volpath"]), relative_variance(imgs["volpath"], spp)
     set_medium(sc, None)
     grid = next(sh for sh in sc.shapes() if sh.interior_medium() is not None)
     out = {"auto_resolution": list(grid.interior_medium().majorant_grid.resolution),
            "default_before": DEFAULT_RESOLUTION}
-    for k in order[1:]:
-        t, v = statistics.median(times[k]) / t0, rel_var(k) / v0
+    for k in list(configs)[1:]:
+        t, v = statistics.median(times[k]) / t0, relative_variance(imgs[k], spp) / v0
         out[k] = {"time": t, "variance": v, "efficiency": 1.0 / (t * v)}
     return out
 

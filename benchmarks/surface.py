@@ -65,6 +65,20 @@ def timed_render(scene, integrator, spp, seed):
     return time.perf_counter() - t0, np.array(img)
 
 
+def alternate(keys, runs: int, render):
+    """``runs`` rounds of ``render(key, run) -> (seconds, image)`` over ``keys``, in order
+    and reversed every other round so that drift hits every key alike; returns
+    ``(times, images)``, each a dict of per-run lists."""
+    keys = list(keys)
+    times, images = {k: [] for k in keys}, {k: [] for k in keys}
+    for run in range(runs):
+        for k in (keys if run % 2 == 0 else keys[::-1]):
+            t, img = render(k, run)
+            times[k].append(t)
+            images[k].append(img)
+    return times, images
+
+
 def bench_pair(scene_name, ours, builtin, spp, runs, res, ref_spp):
     path = ROOT / "scenes" / f"{scene_name}.xml"
     scene = load_scene(str(path), res)
@@ -73,13 +87,8 @@ def bench_pair(scene_name, ours, builtin, spp, runs, res, ref_spp):
     integ = {"ours": mi.load_dict(ours), "builtin": mi.load_dict(builtin)}
     for k in integ:                      # warm-up: compile both kernels
         timed_render(scene, integ[k], spp, seed=10 ** 6)
-    times = {k: [] for k in integ}
-    errors = {k: [] for k in integ}
-    for run in range(runs):              # alternate A/B so drift hits both equally
-        for k in (("ours", "builtin") if run % 2 == 0 else ("builtin", "ours")):
-            t, img = timed_render(scene, integ[k], spp, seed=run)
-            times[k].append(t)
-            errors[k].append(stats.rel_mse(img, ref.mean))
+    times, images = alternate(integ, runs, lambda k, run: timed_render(scene, integ[k], spp, run))
+    errors = {k: [stats.rel_mse(img, ref.mean) for img in images[k]] for k in integ}
     out = {}
     for k in integ:
         t = statistics.median(times[k])

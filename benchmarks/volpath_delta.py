@@ -35,7 +35,7 @@ import mitsuba as mi
 import drjit as dr
 import numpy as np
 
-from surface import device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from surface import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
@@ -129,14 +129,10 @@ def equal_time(scene, ours: dict, builtin: dict, spp: int, runs: int, reference)
     n = {"builtin": spp, "ours": max(4, int(round(spp * per_spp["builtin"] / per_spp["ours"])))}
     if n["ours"] != spp:
         timed_render(scene, integ["ours"], n["ours"], seed=10 ** 6 + 2)  # new spp: compile
-    times = {k: [] for k in integ}
-    errors = {k: [] for k in integ}
-    for run in range(runs):
-        for k in (("ours", "builtin") if run % 2 == 0 else ("builtin", "ours")):
-            t, img = timed_render(scene, integ[k], n[k], seed=run)
-            assert np.isfinite(img).all(), f"{k}: non-finite pixels"
-            times[k].append(t)
-            errors[k].append(stats.rel_mse(img, reference))
+    times, images = alternate(integ, runs, lambda k, run: timed_render(scene, integ[k], n[k], run))
+    for k in integ:
+        assert all(np.isfinite(img).all() for img in images[k]), f"{k}: non-finite pixels"
+    errors = {k: [stats.rel_mse(img, reference) for img in images[k]] for k in integ}
     out = {}
     for k in integ:
         t, e = statistics.median(times[k]), float(np.mean(errors[k]))
@@ -203,10 +199,8 @@ def sparsity_series(res: int, spp: int, runs: int, tmp: Path, ratios) -> list:
                  "builtin": mi.load_dict({"type": "volpath", "max_depth": MAX_DEPTH})}
         for k in integ:
             timed_render(scene, integ[k], spp, seed=10 ** 6)
-        times = {k: [] for k in integ}
-        for run in range(runs):
-            for k in (("ours", "builtin") if run % 2 == 0 else ("builtin", "ours")):
-                times[k].append(timed_render(scene, integ[k], spp, seed=run)[0])
+        times, _ = alternate(integ, runs,
+                             lambda k, run: timed_render(scene, integ[k], spp, run))
         for k in integ:
             row[f"{k}_s_per_sample"] = statistics.median(times[k]) / (spp * res * res)
         paths = spp * res * res

@@ -383,4 +383,3 @@ class MarchedSingle(MarchRule):
     def finish(self, t, state, t_out, entered):
         return FreeFlight(mi.Bool(False), mi.Float(t_out), self.beta * dr.exp(-state.tau),
                           self.r_u, self.beta * state.L)
-
