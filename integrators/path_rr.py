@@ -36,7 +36,7 @@ class PathRR(PathIntegrator):
        - Survival probability of the ``fixed`` rule, in (0, 1]. (Default: 0.95)
      * - rr_min_survival
        - |float|
-       - Lower clamp of the ``throughput`` rule, in [0, 0.95]: bounds the weight 1/s a
+       - Lower clamp of the ``throughput`` rule, in [0, rr_max_survival]: bounds the weight 1/s a
          surviving path can gain (fewer fireflies). (Default: 0)
      * - rr_max_survival
        - |float|
@@ -73,7 +73,7 @@ class PathRR(PathIntegrator):
             rr_depth=self.rr.rr_depth,
             rule=p.choice("rr_rule", "throughput", RR_RULES),
             survival=p.float("rr_survival", 0.95, lo=0.0, hi=1.0, lo_open=True),
-            min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=0.95),
+            min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=self.rr.max_survival),
             max_survival=self.rr.max_survival)
         self.emitter_selection = p.choice("emitter_selection", "uniform", EMITTER_SELECTIONS)
 

@@ -21,6 +21,7 @@ BAD = [
     ({"type": "path_rr", "rr_survival": 0.0}, "'rr_survival' = 0.0 is invalid; allowed: a finite number > 0 and <= 1"),
     ({"type": "path_rr", "rr_survival": 1.5}, "'rr_survival' = 1.5 is invalid"),
     ({"type": "path_rr", "rr_min_survival": 0.99}, "'rr_min_survival' = 0.99 is invalid; allowed: a finite number >= 0 and <= 0.95"),
+    ({"type": "path_rr", "rr_max_survival": 0.5, "rr_min_survival": 0.8}, "'rr_min_survival' = 0.8 is invalid; allowed: a finite number >= 0 and <= 0.5"),
     ({"type": "path_rr", "rr_max_survival": 0.0}, "'rr_max_survival' = 0.0 is invalid; allowed: a finite number > 0 and <= 0.9999"),
     ({"type": "volpath_delta", "rr_max_survival": 1.0}, "'rr_max_survival' = 1.0 is invalid; allowed: a finite number > 0 and <= 0.9999"),
     ({"type": "volpath_delta", "transmittance": "kettunen"}, "'transmittance' = 'kettunen' is invalid; allowed: ratio | residual | track_length"),
