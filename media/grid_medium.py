@@ -9,7 +9,8 @@ import numpy as np
 
 from mitsuba_plugins import bricks, gridio
 from mitsuba_plugins.majorant import (DEFAULT_RESOLUTION, MARGIN, MajorantBuilder, MajorantGrid,
-                                      auto_resolution, pool, resolution_for, voxel_ranges)
+                                      auto_resolution, pool, ray_box, resolution_for,
+                                      voxel_ranges)
 from mitsuba_plugins.params import Params, PluginParameterError
 
 VARIANT = mi.variant()
@@ -415,7 +416,7 @@ class GridMedium(mi.Medium):
 
     # -- mi.Medium interface ---------------------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
-        return mi.BoundingBox3f(self.bbox.min, self.bbox.max).ray_intersect(ray)
+        return ray_box(ray.o, ray.d, self.bbox.min, self.bbox.max)
 
     def get_majorant(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
         # One gray value for all channels: volpath picks one channel's majorant for

@@ -147,5 +147,22 @@ def medium_interaction(ray: mi.Ray3f, t: mi.Float) -> mi.MediumInteraction3f:
 
 
 def index_channel(spec, channel: mi.UInt32) -> mi.Float:
-    """``spec[channel]`` per lane for a 3-channel spectrum."""
-    return dr.select(channel == 0, spec[0], dr.select(channel == 1, spec[1], spec[2]))
+    """``spec[channel]`` per lane, for a spectrum of any channel count (3 in RGB
+    variants, 4 sampled wavelengths in spectral ones, 1 in mono)."""
+    value = spec[0]
+    for k in range(1, len(spec)):
+        value = dr.select(channel == k, spec[k], value)
+    return value
+
+
+def probe_interaction(width: int = 64) -> mi.MediumInteraction3f:
+    """A medium interaction at the origin whose lanes carry wavelengths spread over
+    the whole visible range [MI_CIE_MIN, MI_CIE_MAX] in spectral variants (ignored in
+    RGB and mono ones): evaluating a spatially constant quantity there shows whether
+    it depends on the wavelength (``dr.zeros`` would put every lane at 0 nm)."""
+    mei = dr.zeros(mi.MediumInteraction3f, width)
+    if mi.is_spectral:
+        n = dr.size_v(mi.Spectrum)
+        lam = np.linspace(mi.MI_CIE_MIN, mi.MI_CIE_MAX, width * n).reshape(width, n)
+        mei.wavelengths = mi.Spectrum(*[mi.Float(lam[:, k]) for k in range(n)])
+    return mei

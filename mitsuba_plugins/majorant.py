@@ -161,6 +161,23 @@ def resolution_for(shape, cells: int) -> tuple:
     return (min(cells, x), min(cells, y), min(cells, z))
 
 
+def ray_box(o: mi.Point3f, d: mi.Vector3f, lo, hi):
+    """``(hit, t_near, t_far)``: where the ray ``o + t d`` is inside the axis-aligned box
+    ``[lo, hi]`` (slab test; the arithmetic of Mitsuba's ``BoundingBox3f.ray_intersect``).
+
+    Not ``mi.BoundingBox3f(...).ray_intersect(ray)``: Mitsuba binds that class once per
+    Dr.Jit backend, for the variant imported first, so after a switch from
+    ``llvm_ad_rgb`` to ``llvm_ad_spectral`` it refuses the spectral variant's ``Ray3f``."""
+    lo, hi = mi.Point3f(lo), mi.Point3f(hi)
+    d_rcp = dr.rcp(d)
+    t1 = (lo - o) * d_rcp
+    t2 = (hi - o) * d_rcp
+    t_near = dr.max(dr.minimum(t1, t2))
+    t_far = dr.min(dr.maximum(t1, t2))
+    hit = dr.all((d != 0) | ((o > lo) & (o < hi))) & (t_far >= t_near)
+    return hit, t_near, t_far
+
+
 class DDAState:
     """Loop state of one ray's walk through a :class:`MajorantGrid`."""
     DRJIT_STRUCT = {
@@ -220,8 +237,7 @@ class MajorantGrid:
         """State for walking ``ray`` over ``[t_start, t_stop]`` (``ray.d`` need not be unit)."""
         o = self.to_local @ ray.o
         d = self.to_local @ ray.d
-        box = mi.BoundingBox3f(mi.Point3f(0), mi.Point3f(1))
-        hit, t_in, t_out = box.ray_intersect(mi.Ray3f(o, d))
+        hit, t_in, t_out = ray_box(o, d, 0.0, 1.0)
         t_in = dr.clip(t_in, t_start, t_stop)
         t_out = dr.clip(t_out, t_start, t_stop)
         hit &= active & (t_in < t_out)

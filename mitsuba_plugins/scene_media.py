@@ -6,7 +6,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.contract import MediumTracker, diagonal, medium_interaction
+from mitsuba_plugins.contract import (MediumTracker, diagonal, medium_interaction,
+                                      probe_interaction)
 from mitsuba_plugins.estimators import homogeneous_transmittance
 from mitsuba_plugins.walk import count
 
@@ -14,11 +15,12 @@ VARIANT = mi.variant()
 
 
 def _is_chromatic(medium: mi.Medium) -> bool:
-    """A homogeneous Mitsuba medium's channels differ (they all claim spectral
-    extinction by default; read back once per render)."""
+    """A homogeneous Mitsuba medium's extinction differs between channels, or, in
+    spectral variants, between wavelengths anywhere in the visible range (they all
+    claim spectral extinction by default; read back once per render)."""
     if not medium.has_spectral_extinction():
         return False
-    _, _, sigma_t = medium.get_scattering_coefficients(dr.zeros(mi.MediumInteraction3f))
+    _, _, sigma_t = medium.get_scattering_coefficients(probe_interaction())
     return bool(np.ptp(np.asarray(sigma_t).ravel()) > 0)
 
 

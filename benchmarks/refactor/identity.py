@@ -32,7 +32,7 @@ HOT = [("smoke", {"type": "volpath_delta", "transmittance": tr}) for tr in ("tra
 mode, out = sys.argv[1], sys.argv[2]
 def make_hot():
     import importlib
-    for name in ("mitsuba_plugins.tracking", "mitsuba_plugins.walk"):
+    for name in ("mitsuba_plugins.tracking", "mitsuba_plugins.walk", "mitsuba_plugins.contract"):
         try:
             m = importlib.import_module(name)
         except ImportError:
