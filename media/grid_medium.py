@@ -9,9 +9,10 @@ import numpy as np
 
 from mitsuba_plugins import bricks, gridio
 from mitsuba_plugins.majorant import (DEFAULT_RESOLUTION, MARGIN, MajorantBuilder, MajorantGrid,
-                                      auto_resolution, pool, ray_box, resolution_for,
-                                      voxel_ranges)
+                                      ProductMajorantBuilder, auto_resolution, pool, ray_box,
+                                      resolution_for, voxel_ranges)
 from mitsuba_plugins.params import Params, PluginParameterError
+from mitsuba_plugins.spectra import MODEL_CHANNELS, GridValues, Multiplier, model_range
 
 VARIANT = mi.variant()
 
@@ -155,10 +156,6 @@ class GridMedium(mi.Medium):
                  "emission_grid")
 
     def __init__(self, props: mi.Properties):
-        if not mi.is_rgb:
-            raise PluginParameterError(
-                f"grid_medium: variant '{mi.variant()}' is not supported; use an RGB variant "
-                "(llvm_ad_rgb or cuda_ad_rgb): extinction, albedo and emission are RGB")
         super().__init__(props)
         p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
         scale = p.float("scale", 1.0, lo=0.0)
@@ -169,7 +166,8 @@ class GridMedium(mi.Medium):
                 f"grid_medium: parameter 'scale' = {scale:g} is invalid; allowed: a finite "
                 "number >= 0 that float32 holds (at most 3.4e38)")
         self.albedo = _volume(p, "albedo", 0.75, hi=1.0)
-        self.emission = _volume(p, "emission", None) if p.has("emission") else None
+        self.emission = _volume(p, "emission", None, illuminant=True) \
+            if p.has("emission") else None
         self.emission_grid = None   # (SparseGrid, to_local) of ``emission_grid``
         self.cells = p.int("majorant_resolution", DEFAULT_RESOLUTION, lo=1, hi=1024)
         #: not given: coarsen the bounds per grid (majorant.auto_resolution)
@@ -193,14 +191,15 @@ class GridMedium(mi.Medium):
                         f"'{self.filename}' is not one")
             if p.has("emission_grid"):
                 if self.emission is None:
-                    self.emission = _volume(p, "emission", 1.0)
+                    self.emission = _volume(p, "emission", 1.0, illuminant=True)
                 self.emission_grid = _load_emission_grid(self.filename,
                                                          p.props["emission_grid"], to_world)
             is_vdb = self.filename.lower().endswith(".vdb")
             self.storage = p.choice("storage", "auto" if is_vdb else "dense", STORAGES)
+            self.sigma_t_factor = mi.Color3f(factor)
+            self.multiplier = Multiplier(factor)
             data, to_local, bbox, builder = self._load(self.filename, to_world,
-                                                       p.bool("use_grid_bbox", False),
-                                                       factor)
+                                                       p.bool("use_grid_bbox", False))
             if data is not None:
                 self.data = data
                 self.texture = mi.Texture3f(data, use_accel=True, migrate=True,
@@ -208,7 +207,6 @@ class GridMedium(mi.Medium):
                                             wrap_mode=dr.WrapMode.Clamp)
             self.to_local = to_local
             self.bbox = bbox
-            self.sigma_t_factor = mi.Color3f(factor)
             self.channels = self.shape[3]
             z, y, x = self.shape[:3]
             # voxels per local unit on each axis, and whether lookups are trilinear
@@ -224,6 +222,7 @@ class GridMedium(mi.Medium):
             self.bbox = self.volume.bbox()
             self.channels = self.volume.channel_count()
             self.sigma_t_factor = mi.Color3f(1.0)
+            self.multiplier = Multiplier(1.0)
             self._voxels = None  # a nested volume's lookups are Mitsuba's own
             builder = None
         self.scale = mi.Float(scale)
@@ -234,7 +233,7 @@ class GridMedium(mi.Medium):
         self._update_majorants(builder)
 
     # -- loading ---------------------------------------------------------------------
-    def _load(self, path, to_world, use_grid_bbox, factor):
+    def _load(self, path, to_world, use_grid_bbox):
         """Stream ``path`` into a device tensor, validating every slab; nothing is kept
         if any check fails."""
         header = gridio.read_header(path, self.grid_name)
@@ -249,14 +248,17 @@ class GridMedium(mi.Medium):
             lo, hi = (np.asarray(v, dtype=np.float32) for v in header.bbox)
             to_local = mi.ScalarTransform4f().scale(1.0 / (hi - lo)).translate(-lo) @ to_local
         self.shape = header.shape
+        #: what a stored voxel holds in this variant (mitsuba_plugins.spectra)
+        self.values = GridValues(header.channels)
+        stored = (*header.shape[:3], self.values.channels)
         if self.storage != "dense":
-            return self._load_bricks(header, to_local, factor)
-        builder = MajorantBuilder(header.shape, resolution_for(header.shape, self.cells),
-                                  _weights(factor, header.channels))
-        flat = dr.zeros(mi.Float, header.size)
-        slab_elems = int(np.prod(header.shape[1:]))
+            return self._load_bricks(header, to_local, stored)
+        builder = self._new_builder(stored)
+        flat = dr.zeros(mi.Float, int(np.prod(stored)))
+        slab_elems = int(np.prod(stored[1:]))
         for z0, slab in gridio.iter_slabs(header):
             gridio.check_values(path, "density", slab)
+            slab = self.values.convert(slab)
             builder.add(z0, slab)
             values = slab.reshape(-1)
             for start in range(0, values.size, UPLOAD_CHUNK):
@@ -265,27 +267,38 @@ class GridMedium(mi.Medium):
                                   z0 * slab_elems + start + chunk.size)
                 dr.scatter(flat, mi.Float(chunk), index)
                 dr.eval(flat)
-        data = mi.TensorXf(flat, shape=header.shape)
+        data = mi.TensorXf(flat, shape=stored)
         return data, to_local, _world_bbox(to_local), builder
 
-    def _load_bricks(self, header, to_local, factor):
+    def _new_builder(self, stored_shape, values=None, margin: float = MARGIN):
+        """An empty majorant builder for stored grid values of ``stored_shape``: gray
+        bounds weighted by the sigma_t multiplier, or, for upsampled RGB (spectral
+        variants), the product of the spectrum's and the scale's cell maxima."""
+        values = values or self.values
+        resolution = resolution_for(stored_shape, self.cells)
+        m = self.multiplier
+        if values.upsampled:
+            return ProductMajorantBuilder(stored_shape, resolution, values.factors, m.upper,
+                                          margin)
+        return MajorantBuilder(stored_shape, resolution, m.weights(stored_shape[3]), margin)
+
+    def _load_bricks(self, header, to_local, stored):
         """Stream the grid into bricks (:mod:`mitsuba_plugins.bricks`); ``storage =
         auto`` falls back to dense storage when the bricks save less than half."""
         from mitsuba_plugins.sparse import SparseGrid
-        builder = _read_bricks(header, "density")
+        builder = _read_bricks(header, "density", self.values)
         index = builder.index
         maxima, minima = builder.extrema()
-        sparse_bytes = 4 * (index.size + builder.stored * bricks.SIDE ** 3 * header.channels)
-        if self.storage == "auto" and sparse_bytes > AUTO_SPARSE_FRACTION * 4 * header.size:
+        sparse_bytes = 4 * (index.size + builder.stored * bricks.SIDE ** 3 * stored[3])
+        if self.storage == "auto" and sparse_bytes > AUTO_SPARSE_FRACTION * 4 * np.prod(stored):
             self.storage = "dense"
             _, pool, _, _ = builder.finish()
-            data = bricks.densify(index, pool, header.shape)
+            data = bricks.densify(index, pool, stored)
             del pool
-            majorants = MajorantBuilder(header.shape, resolution_for(header.shape, self.cells),
-                                        _weights(factor, header.channels)).add_all(data)
+            majorants = self._new_builder(stored).add_all(data)
             return mi.TensorXf(data), to_local, _world_bbox(to_local), majorants
         self.storage = "sparse"
-        self.sparse = SparseGrid(header.shape, index, builder.pool_chunks(), builder.stored)
+        self.sparse = SparseGrid(stored, index, builder.pool_chunks(), builder.stored)
         self.brick_extrema = (maxima, minima, index)
         return None, to_local, _world_bbox(to_local), None
 
@@ -299,10 +312,13 @@ class GridMedium(mi.Medium):
         rz, ry, rx = (min(self.cells, c) for c in index.shape)
         z, y, x = self.shape[:3]
         ranges = (voxel_ranges(z, rz), voxel_ranges(y, ry), voxel_ranges(x, rx))
-        weights = _weights(_floats(self.sigma_t_factor), self.channels)
-        values, lows = bricks.cell_bounds(maxima, minima, index, self.shape, ranges, weights)
+        m, c = self.multiplier, self.values.channels
+        product = self.values.upsampled
+        values, lows = bricks.cell_bounds(maxima, minima, index, self.shape, ranges,
+                                          m.weights(c), product=product)
         from mitsuba_plugins.majorant import ROUNDING
-        grid_max = np.float32((maxima * weights).max())
+        grid_max = np.float32(np.prod(maxima.max(axis=0)) * m.upper if product else
+                              (maxima * m.weights(c)).max())
         return ((values * np.float32(1 + ROUNDING)).astype(np.float32),
                 (lows * np.float32(1 - ROUNDING)).astype(np.float32), grid_max)
 
@@ -315,7 +331,7 @@ class GridMedium(mi.Medium):
             values, lows, grid_max = self._brick_majorants()
         elif builder is None:
             # A constant (or procedural) volume: one cell over its bounding box.
-            grid_max = np.float32(self.volume.max())
+            grid_max = np.float32(_volume_max(self.volume))
             values = lows = np.full((1, 1, 1), grid_max, np.float32)
         else:
             values, lows = builder.finish(), builder.finish_min()
@@ -391,26 +407,31 @@ class GridMedium(mi.Medium):
     def _majorant_builder(self):
         """A filled :class:`MajorantBuilder` for the current data, and the grid's
         world -> local transform; ``(None, transform)`` for a volume without data."""
+        values, margin = self.values if self.volume is None else None, MARGIN
         if self.sparse is not None and int(np.prod(self.shape[:3])) > EXACT_MAJORANT_VOXELS:
             return "bricks", self.to_local
         if self.sparse is not None:
             index = self.brick_extrema[2]
-            pool = self.sparse.pool.numpy().reshape(-1, *(bricks.SIDE,) * 3, self.channels)
-            data = bricks.densify(index, pool, self.shape)
-            weights = _weights(_floats(self.sigma_t_factor), self.channels)
-            margin, to_local = MARGIN, self.to_local
+            c = self.sparse.channels
+            pool = self.sparse.pool.numpy().reshape(-1, *(bricks.SIDE,) * 3, c)
+            data = bricks.densify(index, pool, (*self.shape[:3], c))
+            to_local = self.to_local
         elif self.volume is None:
             data = self.data.numpy()
-            gridio.check_values(self.filename, "density", data)
-            weights = _weights(_floats(self.sigma_t_factor), self.channels)
-            margin, to_local = MARGIN, self.to_local
+            if not values.converted:   # exposed through traverse: may have been changed
+                gridio.check_values(self.filename, "density", data)
+            to_local = self.to_local
         else:
             data, to_local = _volume_grid(self.volume)
             if data is None:
                 return None, _bbox_to_local(self.bbox)
-            weights, margin = 1.0, PARSED_TRANSFORM_MARGIN
-        builder = MajorantBuilder(data.shape, resolution_for(data.shape, self.cells), weights,
-                                  margin)
+            # Mitsuba's volume holds RGB (evaluated as luminance in mono) or, in spectral
+            # variants, the upsampled model (4 channels) already
+            values = GridValues(3 if data.shape[3] == MODEL_CHANNELS else data.shape[3])
+            if values.gray_only:
+                data = values.convert(data)
+            margin = PARSED_TRANSFORM_MARGIN
+        builder = self._new_builder(data.shape, values, margin)
         builder.add_all(data)
         return builder, to_local
 
@@ -418,24 +439,28 @@ class GridMedium(mi.Medium):
     def intersect_aabb(self, ray: mi.Ray3f):
         return ray_box(ray.o, ray.d, self.bbox.min, self.bbox.max)
 
-    def get_majorant(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+    def get_majorant(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         # One gray value for all channels: volpath picks one channel's majorant for
         # distance sampling and is unbiased only when it bounds every channel.
-        return mi.Color3f(self.global_majorant)
+        return mi.UnpolarizedSpectrum(self.global_majorant)
 
-    def eval_sigma_t(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
-        """Extinction at ``mei.p`` (per channel)."""
+    def eval_sigma_t(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
+        """Extinction at ``mei.p`` (per channel: RGB, or the path's wavelengths)."""
         if self.volume is not None:
             sigma_t = self.scale * self.volume.eval(mei, active)
-        elif self.sparse is not None:
-            value = self.sparse.eval(mi.Transform4f(self.to_local) @ mei.p,
-                                     self.interpolation == "trilinear", active)
-            rho = mi.Color3f(value) if self.channels == 1 else value
-            sigma_t = self.scale * rho * self.sigma_t_factor
         else:
-            value = self.texture.eval(mi.Transform4f(self.to_local) @ mei.p, active)
-            rho = mi.Color3f(value[0]) if self.channels == 1 else mi.Color3f(*value)
-            sigma_t = self.scale * rho * self.sigma_t_factor
+            p = mi.Transform4f(self.to_local) @ mei.p
+            trilinear = self.interpolation == "trilinear"
+            if self.sparse is not None:
+                rho = _grid_value(self.sparse, self.values, p, trilinear, mei.wavelengths,
+                                  active)
+            elif self.values.upsampled and trilinear:
+                rho = self.values.blend(self.texture.eval_fetch(p, active),
+                                        _cell_position(p, self.shape), mei.wavelengths)
+            else:
+                rho = self.values.spectrum(self.texture.eval(p, active), mei.wavelengths)
+            sigma_t = self.scale * rho * self.multiplier.spectrum(mei.wavelengths,
+                                                                  self.sigma_t_factor)
         if mi.has_flag(self.phase_function().flags(), mi.PhaseFunctionFlags.Microflake):
             sigma_t *= self.phase_function().projected_area(mei, active)
         return sigma_t
@@ -447,24 +472,24 @@ class GridMedium(mi.Medium):
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         sigma_t = self.eval_sigma_t(mei, active)
         sigma_s = sigma_t * self.eval_albedo(mei, active)
-        sigma_n = mi.Color3f(self.global_majorant) - sigma_t
+        sigma_n = mi.UnpolarizedSpectrum(self.global_majorant) - sigma_t
         return sigma_s, sigma_n, sigma_t
 
     @property
     def has_emission(self) -> bool:
         return self.emission is not None
 
-    def get_radiance(self, mei: mi.MediumInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+    def get_radiance(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         """Emitted radiance :math:`L_e` at ``mei.p`` (0 without ``emission``); an
         integrator adds :math:`\\sigma_a L_e` per unit length (docs/method.md section 6)."""
         if self.emission is None:
-            return mi.Color3f(0.0)
-        radiance = mi.Color3f(self.emission.eval(mei, active))
+            return mi.UnpolarizedSpectrum(0.0)
+        radiance = mi.UnpolarizedSpectrum(self.emission.eval(mei, active))
         if self.emission_grid is not None:
-            grid, to_local = self.emission_grid
-            value = grid.eval(mi.Transform4f(to_local) @ mei.p,
-                              self.interpolation == "trilinear", active)
-            radiance *= mi.Color3f(value) if grid.channels == 1 else value
+            grid, values, to_local = self.emission_grid
+            radiance *= _grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
+                                    self.interpolation == "trilinear", mei.wavelengths,
+                                    active)
         return radiance
 
     def traverse(self, callback):
@@ -473,9 +498,11 @@ class GridMedium(mi.Medium):
         if self.volume is not None:
             callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
         else:
-            if self.sparse is None:
+            if self.sparse is None and not self.values.converted:
                 # differentiable: prbvolpath's gradient w.r.t. it equals the one with
-                # heterogeneous + gridvolume (tests/test_gradients.py)
+                # heterogeneous + gridvolume (tests/test_gradients.py). Not exposed where
+                # the stored values are not the file's (RGB upsampled in spectral
+                # variants, reduced to luminance in mono).
                 callback.put("data", self.data, mi.ParamFlags.Differentiable)
             callback.put("sigma_t", self.sigma_t_factor, flags)
         callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
@@ -494,6 +521,7 @@ class GridMedium(mi.Medium):
             raise PluginParameterError(
                 f"grid_medium: parameter 'sigma_t' = {factor} is invalid; allowed: finite "
                 "values >= 0")
+        self.multiplier = Multiplier(factor)
         _check_volume_range("albedo", self.albedo, 0.0, 1.0)
         if self.volume is None and self.sparse is None:
             if tuple(self.data.shape) != tuple(self.texture.tensor().shape):
@@ -530,32 +558,58 @@ def _vdb_to_world(header, to_world: mi.ScalarTransform4f) -> mi.ScalarTransform4
                                 dr.scalar.Matrix4f(np.linalg.inv(matrix).T.astype(np.float32)))
 
 
-def _read_bricks(header, what: str) -> bricks.BrickBuilder:
+def _read_bricks(header, what: str, values: GridValues) -> bricks.BrickBuilder:
     """A filled :class:`~mitsuba_plugins.bricks.BrickBuilder` of a grid file, every value
-    checked (finite, >= 0; ``what`` names the data in errors). For a .vdb the OpenVDB
-    worker cuts the bricks and only stored ones cross the pipe (a non-finite or negative
-    value is non-zero, so its brick is among the checked ones)."""
-    builder = bricks.BrickBuilder(header.shape)
+    checked (finite, >= 0; ``what`` names the data in errors) and stored as ``values``
+    says (a brick's extrema are then those of the majorant factors of upsampled RGB).
+    For a .vdb the OpenVDB worker cuts the bricks and only stored ones cross the pipe (a
+    non-finite or negative value is non-zero, so its brick is among the checked ones)."""
+    builder = bricks.BrickBuilder((*header.shape[:3], values.channels),
+                                  bounds=values.factors if values.upsampled else None)
     if header.vdb_grid is not None:
         from mitsuba_plugins.vdb import iter_vdb_bricks
         for row, cols, blocks in iter_vdb_bricks(header):
             gridio.check_values(header.path, what, blocks)
-            builder.add_row(row, cols, blocks)
+            builder.add_row(row, cols, values.convert(blocks))
     else:
         for z0, slab in gridio.iter_slabs(header):
             gridio.check_values(header.path, what, slab)
-            builder.add(z0, slab)
+            builder.add(z0, values.convert(slab))
     builder.finish_check()
     return builder
 
 
 def _load_emission_grid(path: str, name: str, to_world: mi.ScalarTransform4f):
-    """``(SparseGrid, world -> local)`` of grid ``name`` of a .vdb (values >= 0)."""
+    """``(SparseGrid, GridValues, world -> local)`` of grid ``name`` of a .vdb (values
+    >= 0)."""
     from mitsuba_plugins.sparse import SparseGrid
     header = gridio.read_header(path, name)
-    builder = _read_bricks(header, f"emission_grid {name!r}")
-    grid = SparseGrid(header.shape, builder.index, builder.pool_chunks(), builder.stored)
-    return grid, _vdb_to_world(header, to_world).inverse()
+    values = GridValues(header.channels)
+    builder = _read_bricks(header, f"emission_grid {name!r}", values)
+    grid = SparseGrid((*header.shape[:3], values.channels), builder.index,
+                      builder.pool_chunks(), builder.stored)
+    return grid, values, _vdb_to_world(header, to_world).inverse()
+
+
+def _grid_value(grid, values: GridValues, p: mi.Point3f, trilinear: bool, wavelengths,
+                active) -> mi.UnpolarizedSpectrum:
+    """The value of a sparse grid (:class:`~mitsuba_plugins.sparse.SparseGrid`) at local
+    point ``p`` as a spectrum (upsampled RGB: Mitsuba's blend, mitsuba_plugins.spectra)."""
+    if values.upsampled:
+        if trilinear:
+            corners, f = grid.fetch(p, active)
+            return values.blend(corners, f, wavelengths)
+        return values.spectrum(grid.eval(p, False, active), wavelengths)
+    value = grid.eval(p, trilinear, active)
+    return mi.UnpolarizedSpectrum(value) if grid.channels == 1 else value
+
+
+def _cell_position(p: mi.Point3f, shape) -> mi.Vector3f:
+    """Where local ``p`` lies between the voxel centres that a trilinear texture lookup
+    blends (``gridvolume``'s weights for ``Texture3f.eval_fetch``)."""
+    z, y, x = shape[:3]
+    q = dr.fma(p, mi.Vector3f(x, y, z), -0.5)
+    return q - dr.floor(q)
 
 
 # -- parameter helpers ----------------------------------------------------------------
@@ -588,8 +642,14 @@ def _color(p: Params, name: str, default: float) -> list:
     return values
 
 
-def _volume(p: Params, name: str, default, hi: float | None = None) -> mi.Volume:
-    """A float, rgb or nested volume parameter as a ``mi.Volume``, range-checked."""
+def _volume(p: Params, name: str, default, hi: float | None = None,
+            illuminant: bool = False) -> mi.Volume:
+    """A float, rgb or nested volume parameter as a ``mi.Volume``, range-checked.
+
+    In spectral variants a constant is upsampled by Mitsuba's rules: ``illuminant``
+    (emission) as an emitter's radiance is (``d65``: an RGB white renders white, as an
+    area light of the same value does), otherwise as a reflectance (``rgb``: values in
+    [0, 1], as ``homogeneous`` requires of its ``sigma_t``)."""
     value = p.props[name] if p.has(name) else default
     if isinstance(value, mi.Volume):
         _check_volume_range(name, value, 0.0, hi)
@@ -603,26 +663,56 @@ def _volume(p: Params, name: str, default, hi: float | None = None) -> mi.Volume
         raise PluginParameterError(
             f"grid_medium: parameter '{name}' = {values} is invalid; allowed: values in "
             f"[0, {hi:g}]")
-    spec = values[0] if len(set(values)) == 1 else {"type": "rgb", "value": values}
+    if illuminant and mi.is_spectral:
+        spec = {"type": "d65", "color": values}
+    elif len(set(values)) == 1:
+        spec = values[0]
+    else:
+        if mi.is_spectral and max(values) > 1:
+            raise PluginParameterError(
+                f"grid_medium: parameter '{name}' = {values} is invalid in the spectral "
+                f"variant '{mi.variant()}'; allowed: rgb values in [0, 1] (upsampled as a "
+                "reflectance, as for Mitsuba's media): divide them by their maximum and "
+                "multiply 'scale' by it")
+        spec = {"type": "rgb", "value": values}
     return mi.load_dict({"type": "constvolume", "value": spec})
 
 
 def _check_volume_range(name: str, volume: mi.Volume, lo: float, hi: float | None) -> None:
     data, _ = _volume_grid(volume, need_transform=False)
     if data is not None:
+        if mi.is_spectral and data.shape[3] == MODEL_CHANNELS:
+            # Mitsuba's upsampled RGB: check the values it takes over the wavelengths
+            gridio.check_values(f"<{name} volume>", name, data)   # finite
+            s_min, s_max = model_range(data)
+            data = np.stack([s_min * data[..., 3], s_max * data[..., 3]], axis=-1)
         gridio.check_values(f"<{name} volume>", name, data, lo, hi)
         return
-    vmax = float(volume.max())
+    vmax = _volume_max(volume)
     if not np.isfinite(vmax) or (hi is not None and vmax > hi):
         raise PluginParameterError(
             f"grid_medium: parameter '{name}' has maximum {vmax:g}; allowed: values in "
             f"[{lo:g}, {'inf' if hi is None else f'{hi:g}'}]")
 
 
-def _weights(factor, channels: int) -> np.ndarray:
-    """Per-channel weights of the grid for the gray majorant."""
-    factor = np.asarray(factor, dtype=np.float32)
-    return np.array([factor.max()], np.float32) if channels == 1 else factor
+#: relative slack on a constant volume's largest value read at sampled wavelengths
+PROBE_SLACK = 1e-3
+
+
+def _volume_max(volume: mi.Volume) -> float:
+    """A bound of a volume without grid data: Mitsuba's ``max()``, and in spectral
+    variants also the largest value over the visible range (Mitsuba's ``max()`` of an
+    upsampled rgb constant is not one: 0.84 for (1, 0.2, 1), whose spectrum reaches
+    0.9998), read at the centre of its box."""
+    vmax = float(volume.max())
+    if mi.is_spectral:
+        from mitsuba_plugins.contract import probe_wavelengths
+        it = dr.zeros(mi.Interaction3f, 256)
+        it.wavelengths = probe_wavelengths(256)
+        it.p = mi.Point3f(volume.bbox().center())
+        probed = float(np.max(np.asarray(volume.eval(it))))
+        vmax = max(vmax, probed * (1 + PROBE_SLACK))
+    return vmax
 
 
 def _check_invertible(value) -> None:

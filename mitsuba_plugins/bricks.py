@@ -33,18 +33,22 @@ def brick_counts(shape) -> tuple:
 class BrickBuilder:
     """Collects the stored bricks of a ``(Z, Y, X, C)`` grid fed as z-slabs in order."""
 
-    def __init__(self, shape, keep_blocks: bool = True):
-        """``keep_blocks`` false: count the stored bricks (and their extrema) only."""
+    def __init__(self, shape, keep_blocks: bool = True, bounds=None):
+        """``keep_blocks`` false: count the stored bricks (and their extrema) only.
+        ``bounds(blocks) -> (upper, lower)``: the per-voxel quantities whose extrema a
+        brick keeps (default: the stored channels themselves)."""
         self.shape = tuple(int(s) for s in shape)
         self.keep_blocks = keep_blocks
+        self.bounds = bounds
         z, y, x, c = self.shape
         self.counts = brick_counts(self.shape)
         bz, by, bx = self.counts
         #: slot of each brick in the pool (0: empty)
         self.index = np.zeros(self.counts, np.uint32)
-        self.maxima = [np.zeros((1, c), np.float32)]   # per slot, per channel
-        self.minima = [np.zeros((1, c), np.float32)]
         self.blocks = [np.zeros((1, SIDE, SIDE, SIDE, c), np.float32)]
+        upper, lower = self._bounds(self.blocks[0])
+        self.maxima = [upper.max(axis=(1, 2, 3))]     # per slot, per channel (or bound)
+        self.minima = [lower.min(axis=(1, 2, 3))]
         self.stored = 1
         self._layers = []          # pending z-slices, each (Y, X, C)
         self._next_z = 0           # z of the next slice expected
@@ -78,9 +82,13 @@ class BrickBuilder:
                                                       dtype=np.uint32)
         if self.keep_blocks:
             self.blocks.append(blocks)
-        self.maxima.append(blocks.max(axis=(1, 2, 3)))
-        self.minima.append(blocks.min(axis=(1, 2, 3)))
+        upper, lower = self._bounds(blocks)
+        self.maxima.append(upper.max(axis=(1, 2, 3)))
+        self.minima.append(lower.min(axis=(1, 2, 3)))
         self.stored += n
+
+    def _bounds(self, blocks):
+        return (blocks, blocks) if self.bounds is None else self.bounds(blocks)
 
     def add_row(self, row: int, cols, blocks: np.ndarray) -> None:
         """Record brick row ``row`` cut elsewhere (in order; see :meth:`add_blocks`)."""
@@ -146,8 +154,18 @@ def cut_row(layers: np.ndarray, yxc) -> tuple:
     return (rows, cols), np.ascontiguousarray(view[rows, cols], dtype=np.float32)
 
 
+def _cells_of_bricks(per_brick: np.ndarray, ranges, op) -> np.ndarray:
+    """``op`` (max or min) over the bricks holding each cell's voxel ranges."""
+    for axis, (lo, hi) in enumerate(ranges):
+        lo_b = lo // BRICK
+        hi_b = np.maximum((hi - 1) // BRICK, lo_b)
+        per_brick = np.stack([op(per_brick.take(np.arange(a, b + 1), axis=axis), axis=axis)
+                              for a, b in zip(lo_b, hi_b)], axis=axis)
+    return per_brick
+
+
 def cell_bounds(maxima: np.ndarray, minima: np.ndarray, index: np.ndarray, shape,
-                ranges, weights) -> tuple:
+                ranges, weights, product: bool = False) -> tuple:
     """Majorant and minorant cells ``(Rz, Ry, Rx)`` from the bricks' block extrema.
 
     ``ranges``: per axis (z, y, x) the inclusive voxel ranges a lookup in each cell can
@@ -155,18 +173,19 @@ def cell_bounds(maxima: np.ndarray, minima: np.ndarray, index: np.ndarray, shape
     voxels and the high-side apron, so the bricks ``lo // BRICK .. (hi - 1) // BRICK``
     hold every voxel in ``[lo, hi]``; their extrema bound the cell (looser than voxel-exact bounds by
     at most the rest of those bricks). Gray bound: ``max_c w_c max_c``, ``min_c w_c min_c``.
+    ``product``: the extrema are factors of a product
+    (:class:`mitsuba_plugins.majorant.ProductMajorantBuilder`): each factor's cell
+    extremum, multiplied, times the (one) weight.
     """
     w = np.asarray(weights, np.float32)
-    gray_max = (maxima * w).max(axis=1)[index]          # (Bz, By, Bx)
-    gray_min = (minima * w).min(axis=1)[index]
-    for axis, (lo, hi) in enumerate(ranges):
-        lo_b = lo // BRICK
-        hi_b = np.maximum((hi - 1) // BRICK, lo_b)
-        gray_max = np.stack([gray_max.take(np.arange(a, b + 1), axis=axis).max(axis=axis)
-                             for a, b in zip(lo_b, hi_b)], axis=axis)
-        gray_min = np.stack([gray_min.take(np.arange(a, b + 1), axis=axis).min(axis=axis)
-                             for a, b in zip(lo_b, hi_b)], axis=axis)
-    return gray_max, gray_min
+    if product:
+        upper = np.prod([_cells_of_bricks(maxima[:, f][index], ranges, np.max)
+                         for f in range(maxima.shape[1])], axis=0)
+        lower = np.prod([_cells_of_bricks(minima[:, f][index], ranges, np.min)
+                         for f in range(minima.shape[1])], axis=0)
+        return upper * w.max(), lower * w.max()
+    return (_cells_of_bricks((maxima * w).max(axis=1)[index], ranges, np.max),
+            _cells_of_bricks((minima * w).min(axis=1)[index], ranges, np.min))
 
 
 def densify(index: np.ndarray, pool: np.ndarray, shape) -> np.ndarray:

@@ -155,14 +155,21 @@ def index_channel(spec, channel: mi.UInt32) -> mi.Float:
     return value
 
 
+def probe_wavelengths(width: int = 64):
+    """``width`` lanes of wavelengths spread over the whole visible range [MI_CIE_MIN,
+    MI_CIE_MAX] (spectral variants; None in RGB and mono ones): a spatially constant
+    quantity evaluated there shows whether, and how much, it varies with the wavelength
+    (``dr.zeros`` would put every lane at 0 nm)."""
+    if not mi.is_spectral:
+        return None
+    n = dr.size_v(mi.Spectrum)
+    lam = np.linspace(mi.MI_CIE_MIN, mi.MI_CIE_MAX, width * n).reshape(width, n)
+    return mi.Spectrum(*[mi.Float(lam[:, k]) for k in range(n)])
+
+
 def probe_interaction(width: int = 64) -> mi.MediumInteraction3f:
-    """A medium interaction at the origin whose lanes carry wavelengths spread over
-    the whole visible range [MI_CIE_MIN, MI_CIE_MAX] in spectral variants (ignored in
-    RGB and mono ones): evaluating a spatially constant quantity there shows whether
-    it depends on the wavelength (``dr.zeros`` would put every lane at 0 nm)."""
+    """A medium interaction at the origin with :func:`probe_wavelengths`."""
     mei = dr.zeros(mi.MediumInteraction3f, width)
     if mi.is_spectral:
-        n = dr.size_v(mi.Spectrum)
-        lam = np.linspace(mi.MI_CIE_MIN, mi.MI_CIE_MAX, width * n).reshape(width, n)
-        mei.wavelengths = mi.Spectrum(*[mi.Float(lam[:, k]) for k in range(n)])
+        mei.wavelengths = probe_wavelengths(width)
     return mei

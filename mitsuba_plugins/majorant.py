@@ -58,7 +58,11 @@ class MajorantBuilder:
 
     ``weights`` (length C, or a scalar) multiply the channels before the maximum
     over channels is taken: the bound is gray, ``max_c weights_c * value_c``. The
-    lower bound (:meth:`finish_min`) is ``min_c weights_c * value_c`` over the same voxels.
+    *minorant* (:meth:`finish_min`) is ``min_c weights_c * value_c`` over the same
+    voxels: a lower bound of every channel when the weights are equal; with a chromatic
+    multiplier (1-channel data, unequal weights) it is the control of the channel of the
+    largest weight (residual ratio tracking is unbiased for any control below the
+    majorant, docs/method.md section 9).
     """
 
     def __init__(self, shape, resolution, weights=1.0, margin: float = MARGIN):
@@ -103,6 +107,50 @@ class MajorantBuilder:
         """``(Rz, Ry, Rx)`` float32 lower bounds of the extinction in each cell."""
         cells = _reduce_axis(self.per_slice_min, 0, self.ranges[0], np.min)
         return (cells * np.float32(1 - ROUNDING)).astype(np.float32)
+
+
+class ProductMajorantBuilder(MajorantBuilder):
+    """Cell bounds of a product of non-negative factors that a lookup interpolates each on
+    its own (an upsampled RGB grid in spectral variants: the blend of the voxels' spectra
+    times the blend of their scales, :mod:`mitsuba_plugins.spectra`). A blend is at most
+    the largest of the values blended, so the product of the factors' cell maxima
+    (times ``weight``, the multiplier's largest value) bounds a cell; the product of
+    their minima (times ``weight``, as :class:`MajorantBuilder` weights its minorant)
+    is the minorant. ``factors(slab)`` gives ``(upper, lower)``, each ``(k, Y, X, F)``,
+    for a slab of stored values."""
+
+    def __init__(self, shape, resolution, factors, weight: float, margin: float = MARGIN):
+        super().__init__(shape, resolution, 1.0, margin)
+        self.factors, self.weight = factors, weight
+        self.per_factor, self.factor_max = None, None
+
+    def add(self, z0: int, slab: np.ndarray) -> None:
+        upper, lower = self.factors(slab)
+        z, ry, rx = self.per_slice.shape
+        if self.per_factor is None:
+            count = upper.shape[3]
+            self.per_factor = np.zeros((count, z, ry, rx), np.float32)
+            self.per_factor_min = np.zeros((count, z, ry, rx), np.float32)
+            self.factor_max = np.zeros(count)
+        rows = slice(z0, z0 + slab.shape[0])
+        for f in range(upper.shape[3]):
+            if upper[..., f].size:
+                self.factor_max[f] = max(self.factor_max[f], float(upper[..., f].max()))
+            reduced = _reduce_axis(upper[..., f], 1, self.ranges[1])
+            self.per_factor[f, rows] = _reduce_axis(reduced, 2, self.ranges[2])
+            reduced = _reduce_axis(lower[..., f], 1, self.ranges[1], np.min)
+            self.per_factor_min[f, rows] = _reduce_axis(reduced, 2, self.ranges[2], np.min)
+        self.max = float(np.prod(self.factor_max)) * self.weight
+
+    def finish(self) -> np.ndarray:
+        cells = np.prod([_reduce_axis(p, 0, self.ranges[0]) for p in self.per_factor], axis=0)
+        with np.errstate(over="ignore"):
+            return (cells * np.float32(self.weight) * np.float32(1 + ROUNDING)).astype(np.float32)
+
+    def finish_min(self) -> np.ndarray:
+        cells = np.prod([_reduce_axis(p, 0, self.ranges[0], np.min)
+                         for p in self.per_factor_min], axis=0)
+        return (cells * np.float32(self.weight) * np.float32(1 - ROUNDING)).astype(np.float32)
 
 
 def build_majorants(data: np.ndarray, resolution, weights=1.0, margin: float = MARGIN,

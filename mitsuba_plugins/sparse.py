@@ -20,7 +20,8 @@ UPLOAD_CHUNK = 1 << 22
 
 
 class SparseGrid:
-    """Indirection grid + brick pool of a ``(Z, Y, X, C)`` grid, C in (1, 3)."""
+    """Indirection grid + brick pool of a ``(Z, Y, X, C)`` grid, any C (1, 3; 4 for
+    upsampled RGB in spectral variants)."""
 
     def __init__(self, shape, index: np.ndarray, chunks: list, stored: int):
         self.shape = tuple(int(s) for s in shape)
@@ -64,21 +65,38 @@ class SparseGrid:
         return slot * (SIDE ** 3) + offset
 
     def _read(self, element: mi.UInt32, active):
+        """The voxel at pool element ``element``: ``Float``, ``Color3f``, or for another
+        channel count (4: an upsampled RGB voxel, mitsuba_plugins.spectra) a list."""
         if self.channels == 1:
             return dr.gather(mi.Float, self.pool, element, active)
-        return dr.gather(mi.Color3f, self.pool, element, active)
+        if self.channels == 3:
+            return dr.gather(mi.Color3f, self.pool, element, active)
+        return [dr.gather(mi.Float, self.pool, element * self.channels + k, active)
+                for k in range(self.channels)]
+
+    def _corner(self, p: mi.Point3f, active):
+        """Pool element of the low corner of the trilinear cell around local ``p``, and
+        the position ``f`` in that cell."""
+        size = mi.Vector3f(*self._size_i)
+        q = dr.clip(p * size - 0.5, 0.0, size - 1.0)
+        base_f = dr.floor(q)
+        return self._slot_base(mi.Vector3i(base_f), active), q - base_f
+
+    def fetch(self, p: mi.Point3f, active=True):
+        """The 8 voxels a trilinear lookup at ``p`` blends (x fastest, then y, z, as
+        ``Texture3f.eval_fetch``) and the position ``f`` between them."""
+        base, f = self._corner(p, active)
+        corners = [self._read(base + (dz * SIDE + dy) * SIDE + dx, active)
+                   for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)]
+        return corners, f
 
     def eval(self, p: mi.Point3f, trilinear: bool, active=True):
         """Value at local point ``p`` (unit cube): ``mi.Float`` or ``mi.Color3f``."""
-        size = mi.Vector3f(*self._size_i)
-        top = size - 1.0
         if not trilinear:
-            voxel = mi.Vector3i(dr.clip(dr.floor(p * size), 0.0, top))
+            size = mi.Vector3f(*self._size_i)
+            voxel = mi.Vector3i(dr.clip(dr.floor(p * size), 0.0, size - 1.0))
             return self._read(self._slot_base(voxel, active), active)
-        q = dr.clip(p * size - 0.5, 0.0, top)
-        base_f = dr.floor(q)
-        f = q - base_f
-        base = self._slot_base(mi.Vector3i(base_f), active)
+        base, f = self._corner(p, active)
         g = 1.0 - f
         result = None
         for dz in (0, 1):

@@ -36,11 +36,14 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(autouse=True)
-def variant():
-    """Every test starts in the test variant with the plugins registered and a clean JIT."""
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    yield VARIANT
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
+def variant(request):
+    """Every test starts in the test variant with the plugins registered and a clean JIT;
+    a test that asks for the ``other_variant`` fixture (tests/test_variants.py, module
+    scope) starts in that one. The switch happens only where the variant changes: each
+    switch re-imports the plugin modules, and tests are grouped by variant."""
+    wanted = request.getfixturevalue("other_variant") \
+        if "other_variant" in request.fixturenames else VARIANT
+    if mi.variant() != wanted:
+        mi.set_variant(wanted)
+    yield wanted
     dr.sync_thread()

@@ -201,3 +201,46 @@ def emissive_slab(Le: float, **medium) -> mi.Scene:
                    "film": {"type": "hdrfilm", "width": 8, "height": 8,
                             "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent", "sample_count": 16}}})
+
+
+# -- majorant bounds, property-tested over random rays ------------------------------------
+N_RAYS = 4096
+
+
+def random_rays(rng, n, spread=2.5):
+    """Origins in and around the box, directions with some exactly axis-parallel
+    components (the DDA's divide-by-zero case)."""
+    o = rng.uniform(-spread, spread, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d[rng.random((n, 3)) < 0.1] = 0.0
+    d[np.all(d == 0, axis=1)] = (0.0, 0.0, 1.0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
+                    mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3)))), o, d
+
+
+def check_segment_bounds(medium, grid):
+    """Along every segment of random rays, sigma_t at random points (all channels; in a
+    spectral variant at random wavelengths over the visible range) <= sigma_maj; returns
+    the segments' majorants."""
+    rng = np.random.default_rng(3)
+    ray, _, _ = random_rays(rng, N_RAYS, spread=3.0)
+    t0, t1, sigma_maj, valid = grid.segments(ray, 0.0, 8.0)
+    k = 8  # points per segment
+    rows, cols = np.nonzero(valid)
+    u = rng.random((rows.size, k))
+    t = t0[rows, cols, None] + u * (t1 - t0)[rows, cols, None]
+    o = np.array([ray.o.x, ray.o.y, ray.o.z]).T[rows]
+    d = np.array([ray.d.x, ray.d.y, ray.d.z]).T[rows]
+    p = (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3).astype(np.float32)
+    mei = dr.zeros(mi.MediumInteraction3f, p.shape[0])
+    mei.p = mi.Point3f(*(mi.Float(p[:, i]) for i in range(3)))
+    if mi.is_spectral:
+        mei.wavelengths = mi.Spectrum(*[mi.Float(rng.uniform(
+            mi.MI_CIE_MIN, mi.MI_CIE_MAX, p.shape[0]).astype(np.float32)) for _ in range(4)])
+    channels = dr.size_v(mi.Spectrum)
+    sigma_t = np.array(medium.eval_sigma_t(mei)).reshape(channels, -1).T.max(axis=1)
+    bound = np.repeat(sigma_maj[rows, cols], k)
+    worst = np.max(sigma_t - bound)
+    assert worst <= 0.0, f"sigma_t exceeds the segment majorant by {worst}"
+    return sigma_maj[valid]

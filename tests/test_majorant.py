@@ -6,24 +6,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import grid
+from helpers import N_RAYS, check_segment_bounds, grid, random_rays
 from mitsuba_plugins import gridio
 from mitsuba_plugins.majorant import (MajorantBuilder, MajorantGrid, auto_resolution,
                                       build_majorants, pool, voxel_ranges)
-
-N_RAYS = 4096
-
-
-def _rays(rng, n, spread=2.5):
-    """Origins in and around the box, directions with some exactly axis-parallel
-    components (the DDA's divide-by-zero case)."""
-    o = rng.uniform(-spread, spread, (n, 3))
-    d = rng.normal(size=(n, 3))
-    d[rng.random((n, 3)) < 0.1] = 0.0
-    d[np.all(d == 0, axis=1)] = (0.0, 0.0, 1.0)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
-                    mi.Vector3f(*(mi.Float(d[:, i].astype(np.float32)) for i in range(3)))), o, d
 
 
 TRANSFORMS = {
@@ -50,7 +36,7 @@ def test_dda_segments_tile_the_interval(transform):
     rng = np.random.default_rng(7)
     values = rng.random((4, 5, 6)).astype(np.float32)
     grid = MajorantGrid(values, TRANSFORMS[transform].inverse(), outside=9.0)
-    ray, _, _ = _rays(rng, N_RAYS)
+    ray, _, _ = random_rays(rng, N_RAYS)
     tmin = rng.uniform(0, 1, N_RAYS).astype(np.float32)
     tmax = tmin + rng.uniform(0, 6, N_RAYS).astype(np.float32)
     t0, t1, sigma_maj, valid = grid.segments(ray, mi.Float(tmin), mi.Float(tmax))
@@ -91,34 +77,12 @@ def test_segment_majorant_bounds_extinction(tmp_path, interpolation, transform, 
         "sigma_t": [1.0, 0.7, 0.2] if not chromatic else 1.0, "majorant_resolution": 8})
     grid = medium.majorant_grid
     assert grid.resolution == (8, 8, 8)         # given: honoured, not chosen
-    _check_bounds(medium, grid)
+    check_segment_bounds(medium, grid)
     # ... and the grid is doing something: many cells, and segments, bound far below
     # the global majorant (the shell leaves most cells empty).
     glob = float(medium.global_majorant[0])
     assert np.mean(grid.host_values < 0.5 * glob) > 0.3
     assert grid.empty_fraction() > 0.2
-
-
-def _check_bounds(medium, grid):
-    """Along every segment of random rays, sigma_t at random points (all channels) <=
-    sigma_maj; returns the segments' majorants."""
-    rng = np.random.default_rng(3)
-    ray, _, _ = _rays(rng, N_RAYS, spread=3.0)
-    t0, t1, sigma_maj, valid = grid.segments(ray, 0.0, 8.0)
-    k = 8  # points per segment
-    rows, cols = np.nonzero(valid)
-    u = rng.random((rows.size, k))
-    t = t0[rows, cols, None] + u * (t1 - t0)[rows, cols, None]
-    o = np.array([ray.o.x, ray.o.y, ray.o.z]).T[rows]
-    d = np.array([ray.d.x, ray.d.y, ray.d.z]).T[rows]
-    p = (o[:, None, :] + t[..., None] * d[:, None, :]).reshape(-1, 3).astype(np.float32)
-    mei = dr.zeros(mi.MediumInteraction3f, p.shape[0])
-    mei.p = mi.Point3f(*(mi.Float(p[:, i]) for i in range(3)))
-    sigma_t = np.array(medium.eval_sigma_t(mei)).reshape(3, -1).T.max(axis=1)
-    bound = np.repeat(sigma_maj[rows, cols], k)
-    worst = np.max(sigma_t - bound)
-    assert worst <= 0.0, f"sigma_t exceeds the segment majorant by {worst}"
-    return sigma_maj[valid]
 
 
 def test_pool_keeps_bounds():
@@ -153,7 +117,7 @@ def test_auto_resolution_follows_density(tmp_path):
                                "scale": scale})
         picked[scale] = medium.majorant_grid.resolution
         for g in (medium.majorant_grid, medium.march_grid):
-            maj = _check_bounds(medium, g)
+            maj = check_segment_bounds(medium, g)
             assert np.all(maj <= float(medium.global_majorant[0]) * (1 + 1e-5))
         # marches step by the bound: they keep the finest grid
         assert medium.march_grid.resolution == (16, 16, 16)

@@ -12,6 +12,7 @@ and the hero lookup knew 3 channels only.
 """
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -28,10 +29,9 @@ RES = 16
 DEPTH = 8
 
 
-@pytest.fixture(params=VARIANTS, ids=lambda v: v.split("_")[-1])
+@pytest.fixture(scope="module", params=VARIANTS, ids=lambda v: v.split("_")[-1])
 def other_variant(request):
-    """Switch to a spectral / mono variant (the conftest fixture switches back)."""
-    mi.set_variant(request.param)
+    """The spectral / mono variant a test runs in (conftest's ``variant`` switches)."""
     return request.param
 
 
@@ -105,3 +105,125 @@ def test_polarized_variant_is_refused_with_one_line():
     from mitsuba_plugins.registry import UnsupportedVariantError, check_variant
     with pytest.raises(UnsupportedVariantError, match="polarized rendering is not implemented"):
         check_variant(f"{BACKEND}_ad_spectral_polarized")
+
+
+# -- grid_medium in spectral and mono variants ------------------------------------------
+@pytest.fixture(scope="module")
+def rgb_grids(tmp_path_factory):
+    """A gray and an RGB grid (with empty space and a black corner) as .vol files."""
+    from mitsuba_plugins import gridio
+    root = tmp_path_factory.mktemp("variant_grids")
+    rng = np.random.default_rng(11)
+    gray = (rng.random((10, 12, 9)) ** 2 * 2.0).astype(np.float32)
+    gray[:3, :4, :3] = 0.0
+    rgb = gray[..., None] * rng.uniform(0.05, 1.0, (10, 12, 9, 3)).astype(np.float32)
+    gridio.write_vol(root / "gray.vol", gray)
+    gridio.write_vol(root / "rgb.vol", rgb)
+    return root
+
+
+def _grid_pair(path, storage="dense", interpolation="trilinear", **kw):
+    tw = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)
+    ours = {"type": "grid_medium", "filename": str(path), "scale": 3.0, "to_world": tw,
+            "storage": storage, "interpolation": interpolation, **kw}
+    theirs = {"type": "heterogeneous", "scale": 3.0,
+              "sigma_t": {"type": "gridvolume", "filename": str(path), "to_world": tw,
+                          "filter_type": interpolation}, **kw}
+    return ours, theirs
+
+
+@pytest.mark.parametrize("storage", ["dense", "sparse"])
+@pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
+@pytest.mark.parametrize("name", ["gray.vol", "rgb.vol"])
+def test_grid_medium_lookups_equal_gridvolume(other_variant, rgb_grids, name, storage,
+                                              interpolation):
+    """grid_medium's extinction equals heterogeneous + gridvolume's (up to float rounding)
+    at random points and wavelengths (RGB upsampled as gridvolume does in spectral variants, its luminance in
+    mono), and its global majorant bounds every value."""
+    ours, theirs = _grid_pair(rgb_grids / name, storage, interpolation)
+    ours, theirs = mi.load_dict(ours), mi.load_dict(theirs)
+    rng = np.random.default_rng(2)
+    n = 8192
+    p = rng.uniform(-0.99, 0.99, (n, 3)).astype(np.float32)
+    mei = dr.zeros(mi.MediumInteraction3f, n)
+    mei.p = mi.Point3f(*(mi.Float(p[:, i]) for i in range(3)))
+    if mi.is_spectral:
+        mei.wavelengths = mi.Spectrum(*[mi.Float(rng.uniform(
+            mi.MI_CIE_MIN, mi.MI_CIE_MAX, n).astype(np.float32)) for _ in range(4)])
+    a = np.array(ours.eval_sigma_t(mei))
+    _, _, b = theirs.get_scattering_coefficients(mei)
+    b = np.array(b)
+    assert np.all(np.isfinite(a))
+    # float rounding of the interpolation weights (CUDA's hardware textures interpolate
+    # with 8-bit weights, on both sides, tests/test_sparse.py)
+    tol = 3 * 2.0 ** -9 if mi.variant().startswith("cuda") else 4e-6
+    assert np.max(np.abs(a - b)) <= tol * b.max(), np.max(np.abs(a - b)) / b.max()
+    assert a.max() <= float(ours.global_majorant[0])
+
+
+@pytest.mark.parametrize("storage", ["dense", "sparse"])
+def test_grid_medium_majorant_cells_bound_extinction(other_variant, rgb_grids, storage):
+    """Every majorant segment bounds the extinction along random rays, at random
+    wavelengths: an RGB grid (spectral: the product of the spectrum's and the scale's
+    cell maxima) and a gray grid times a chromatic multiplier."""
+    from helpers import check_segment_bounds
+    for name, factor in (("rgb.vol", 1.0), ("gray.vol", [1.0, 0.3, 0.05])):
+        medium = mi.load_dict(dict(_grid_pair(rgb_grids / name, storage)[0], sigma_t=factor,
+                                   majorant_resolution=4))
+        assert medium.majorant_grid.resolution == (4, 4, 4)
+        check_segment_bounds(medium, medium.majorant_grid)
+
+
+@pytest.mark.parametrize("integrator", ["volpath_delta", "volpath_raymarch"])
+@pytest.mark.parametrize("storage", ["dense", "sparse"])
+def test_rgb_grid_medium_against_heterogeneous(other_variant, rgb_grids, storage, integrator):
+    """An RGB grid through grid_medium renders what heterogeneous + gridvolume of the same
+    file renders through volpath."""
+    ours, theirs = _grid_pair(rgb_grids / "rgb.vol", storage, albedo=0.8)
+    sensor = camera(res=RES, origin=(0.0, 1.2, 4.0))
+    a = estimate(media_scene(ours, sensor=sensor), {"type": integrator, "max_depth": DEPTH},
+                 passes=8, spp=32, seed=1000)
+    b = estimate(media_scene(theirs, sensor=sensor), {"type": "volpath", "max_depth": DEPTH},
+                 passes=8, spp=64, seed=0)
+    assert_same_expectation(a, b, f"{mi.variant()}-{integrator}-rgb_grid-{storage}")
+
+
+@pytest.mark.parametrize("name", ["smoke", "chromatic", "sparse"])
+def test_suite_media_scenes_against_volpath(other_variant, name):
+    """The suite's own grid_medium scenes: volpath_delta against Mitsuba's volpath with
+    the same medium (through Mitsuba's interface: one global majorant)."""
+    _against(load(name, res=RES), "volpath_delta")
+
+
+def test_emission_matches_an_area_light_of_the_same_radiance(other_variant):
+    """An emissive absorbing slab (gray extinction 1 over d = 2, Le = (2, 1, 0.5)) sends
+    (1 - exp(-2)) of what a rectangle emitter of radiance Le sends (section 6's
+    convention): in spectral variants RGB emission is upsampled as an emitter's radiance
+    is (an RGB white stays white), in mono it is its luminance. z-test of the image means
+    (pixels independent; 8x8 orthographic view)."""
+    from helpers import emissive_slab
+    from mitsuba_plugins.tools import stats
+    Le = [2.0, 1.0, 0.5]
+    slab = emissive_slab(Le, sigma_t={"type": "constvolume", "value": 1.0,
+                                      "to_world": mi.ScalarTransform4f().translate(
+                                          [-1, -1, -1]).scale(2)})
+    T = mi.ScalarTransform4f
+    card = mi.load_dict({
+        "type": "scene",
+        "card": {"type": "rectangle", "to_world": T().scale(2),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": Le}}},
+        "sensor": {"type": "orthographic",
+                   "to_world": T().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0]) @ T().scale(
+                       [0.5, 0.5, 1]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                            "rfilter": {"type": "box"}}}})
+    f = 1.0 - np.exp(-2.0)
+    a = np.array(mi.render(slab, integrator=mi.load_dict({"type": "volpath_delta"}),
+                           spp=512, seed=3)).reshape(64, -1)
+    b = np.array(mi.render(card, integrator=mi.load_dict({"type": "path"}), spp=512,
+                           seed=4)).reshape(64, -1)
+    for c in range(a.shape[1]):
+        se = np.sqrt(a[:, c].var(ddof=1) / 64 + f ** 2 * b[:, c].var(ddof=1) / 64)
+        z = (a[:, c].mean() - f * b[:, c].mean()) / max(se, 1e-7)
+        assert abs(z) < stats.sidak_z(1e-3, a.shape[1]), \
+            f"channel {c}: {a[:, c].mean():.5f} vs {f:.4f} x {b[:, c].mean():.5f} (z {z:.2f})"
