@@ -127,13 +127,18 @@ class BrickBuilder:
         return blocks
 
 
-def cut_row(layers: np.ndarray, yxc) -> tuple:
+def cut_row(layers: np.ndarray, yxc, bricks=None) -> tuple:
     """Stored bricks of one brick row: ``layers`` ``(k, Y, X, C)`` are the row's slices,
     ``k <= SIDE`` (fewer at the grid's end, where the last slice is repeated). Returns
-    ``((by, bx), blocks)`` with blocks ``(n, SIDE, SIDE, SIDE, C)``."""
+    ``((by, bx), blocks)`` with blocks ``(n, SIDE, SIDE, SIDE, C)``.
+
+    ``bricks = (by, bx)``: cut that many bricks of a tile of the row whose ``layers``
+    hold their apron where the grid goes on (``Y = 8 by + 1``), or end with the grid
+    (``Y <= 8 by``; the last voxel is repeated, as lookups clamp). Default: every brick
+    of ``Y x X`` voxels, which end with the grid."""
     y, x, c = yxc
     k = layers.shape[0]
-    by, bx = -(-y // BRICK), -(-x // BRICK)
+    by, bx = bricks if bricks is not None else (-(-y // BRICK), -(-x // BRICK))
     # clamp-extend to whole bricks plus the apron (edge values repeated, as lookups clamp)
     pad = ((0, SIDE - k), (0, by * BRICK + 1 - y), (0, bx * BRICK + 1 - x), (0, 0))
     if any(p[1] for p in pad):

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import os
+import re
 import stat
 import struct
 
@@ -197,7 +198,10 @@ def _read_npy_header(path) -> GridHeader:
 
 def check_values(path, name: str, values: np.ndarray, lo: float = 0.0,
                  hi: float | None = None) -> None:
-    """Raise unless every value is finite and within [lo, hi]."""
+    """Raise unless every value is finite and within [lo, hi] (an empty array passes:
+    a brick row or slab without stored values)."""
+    if values.size == 0:
+        return
     bad = ~np.isfinite(values)
     if bad.any():
         _fail(path, f"{name}: {int(bad.sum())} non-finite value(s) (NaN or Inf)")
@@ -325,9 +329,10 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
     lo, hi, rotated = world_box(header)
     if ext == ".vdb":
         from mitsuba_plugins.vdb import write_vdb
-        report(f"{target}: grid {grid!r}, {x} x {y} x {z} x {c} voxels, zeros left inactive")
+        name = re.sub(r"\[\d+\]$", "", grid)    # an address name[k] writes grid 'name'
+        report(f"{target}: grid {name!r}, {x} x {y} x {z} x {c} voxels, zeros left inactive")
         with atomic_path(target) as tmp:
-            write_vdb(tmp, grid, header.shape, _index_to_world(header, lo, hi),
+            write_vdb(tmp, name, header.shape, _index_to_world(header, lo, hi),
                       ((z0, _checked(header, slab)) for z0, slab in iter_slabs(header)))
         return {"shape": header.shape, "bytes": None, "bbox": (lo, hi), "rotated": False}
     report(f"{target}: {x} x {y} x {z} x {c} float32 values, {size / 2 ** 20:.4g} MiB (dense)")

@@ -22,7 +22,9 @@ import contextlib
 import functools
 import json
 import os
+import select
 import subprocess
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -66,36 +68,171 @@ def openvdb_python(path="") -> str:
     return exe
 
 
-def _run(path, *args) -> subprocess.CompletedProcess:
-    proc = subprocess.run([openvdb_python(path), str(WORKER), *map(str, args)],
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        reason = (proc.stderr.strip().splitlines() or ["no message"])[-1]
-        _fail(path, f"not a readable OpenVDB file ({reason})")
-    return proc
+#: environment variables of the reader's limits
+MEMORY_VARIABLE = "MITSUBA_PLUGINS_VDB_MEMORY"
+TIMEOUT_VARIABLE = "MITSUBA_PLUGINS_VDB_TIMEOUT"
+#: the reader's data segment may grow to the larger of this and FILE_FACTOR x the file
+#: size (OpenVDB trees of compressed or half-float files are several times the file)
+MIN_MEMORY = 4 << 30
+FILE_FACTOR = 32
+#: seconds the reader may go without sending anything before it is stopped
+DEFAULT_TIMEOUT = 300.0
+#: index coordinates a loaded box may span: OpenVDB 10's copyToArray crashes (or spins)
+#: on boxes reaching past +-2^30 (measured: a box ending at 2^30 + 2 segfaults)
+INDEX_LIMIT = 1 << 30
+#: value types a density (or emission) grid may hold
+ALLOWED_TYPES = tuple(CHANNELS)
 
 
-def vdb_info(path, value_range: bool = True) -> list:
-    """Every grid of ``path``: a list of dicts (see :mod:`mitsuba_plugins._vdb_worker`);
-    without ``value_range`` their ``min``/``max`` are None (reading them costs a pass
-    over every value)."""
-    args = ["info", os.fspath(path)] + ([] if value_range else ["norange"])
-    return json.loads(_run(path, *args).stdout)
+def _limits(path) -> tuple:
+    """``(environment, timeout)`` of a reader of ``path``."""
+    env = dict(os.environ)
+    env["MITSUBA_PLUGINS_VDB_PARENT"] = str(os.getpid())
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        size = 0
+    env["MITSUBA_PLUGINS_VDB_MEMORY"] = os.environ.get(MEMORY_VARIABLE) or \
+        str(max(MIN_MEMORY, FILE_FACTOR * size))
+    timeout = float(os.environ.get(TIMEOUT_VARIABLE) or DEFAULT_TIMEOUT)
+    return env, timeout
+
+
+class _Worker:
+    """One run of the worker: data from its own pipe, read with a deadline; its messages
+    in a temporary file (a full stderr pipe cannot block it)."""
+
+    def __init__(self, path, argv, stdin=None):
+        self.path = path
+        env, self.timeout = _limits(path)
+        self.errors = tempfile.TemporaryFile()
+        self.proc = subprocess.Popen([openvdb_python(path), str(WORKER), *map(str, argv)],
+                                     stdin=stdin, stdout=subprocess.PIPE, stderr=self.errors,
+                                     env=env)
+
+    def reason(self, default: str) -> str:
+        """The worker's last line, once it has ended."""
+        self.errors.seek(0)
+        text = self.errors.read().decode(errors="replace").strip()
+        return text.splitlines()[-1] if text else default
+
+    def read(self, count: int) -> bytes:
+        """Exactly ``count`` bytes of data; fails naming the file otherwise."""
+        fd, data = self.proc.stdout.fileno(), bytearray()
+        while len(data) < count:
+            ready, _, _ = select.select([fd], [], [], self.timeout)
+            if not ready:
+                self.close()
+                _fail(self.path, f"the OpenVDB reader sent nothing for {self.timeout:g} s and "
+                                 f"was stopped (set {TIMEOUT_VARIABLE} to wait longer)")
+            chunk = os.read(fd, min(count - len(data), 1 << 22))
+            if not chunk:
+                break
+            data += chunk
+        if len(data) != count:
+            self.proc.wait()
+            _fail(self.path, "reading grid values failed (" + self.reason(
+                "the OpenVDB reader ended early" + self._signal()) + ")")
+        return bytes(data)
+
+    def _signal(self) -> str:
+        code = self.proc.returncode
+        return f", killed by signal {-code}" if code is not None and code < 0 else ""
+
+    def read_line(self) -> bytes:
+        """All the data up to the worker's exit (a JSON line)."""
+        data = bytearray()
+        fd = self.proc.stdout.fileno()
+        while True:
+            ready, _, _ = select.select([fd], [], [], self.timeout)
+            if not ready:
+                self.close()
+                _fail(self.path, f"the OpenVDB reader sent nothing for {self.timeout:g} s and "
+                                 f"was stopped (set {TIMEOUT_VARIABLE} to wait longer)")
+            chunk = os.read(fd, 1 << 16)
+            if not chunk:
+                break
+            data += chunk
+        if self.proc.wait() != 0:
+            _fail(self.path, "not a readable OpenVDB file (" + self.reason(
+                "no message" + self._signal()) + ")")
+        return bytes(data)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        self.proc.stdout.close()
+        self.errors.close()
+
+
+def grid_list(path) -> list:
+    """The grids of ``path`` as :class:`~mitsuba_plugins.vdbfile.GridEntry` (read from the
+    header, without OpenVDB)."""
+    from mitsuba_plugins.vdbfile import VdbHeaderError, read_grid_list
+    openvdb_python(path)           # reading a .vdb needs it: say so first
+    try:
+        return read_grid_list(path)
+    except VdbHeaderError as error:
+        _fail(path, f"not a readable OpenVDB file ({error})")
+
+
+def _unsupported(entry) -> str | None:
+    """Why a grid cannot be read here (None if it can)."""
+    if entry.value_type in ALLOWED_TYPES:
+        return None
+    return f"holds {entry.value_type} values; allowed: {', '.join(ALLOWED_TYPES)}"
+
+
+def vdb_info(path, value_range: bool = True, addresses=None) -> list:
+    """Grids of ``path`` (every one, or those ``addresses`` name), in file order: dicts
+    with ``name``, ``address`` (the name, or ``name[k]`` when several grids share it),
+    ``type``, and, for grids of a readable type, what :mod:`mitsuba_plugins._vdb_worker`
+    reports (``readable`` true); a grid of another type has ``readable`` false and
+    ``reason``. Without ``value_range`` ``min``/``max`` are None (reading them costs a
+    pass over every value)."""
+    entries = grid_list(path)
+    if addresses is not None:
+        entries = [e for e in entries if e.address in addresses]
+    readable = [e.address for e in entries if _unsupported(e) is None]
+    details = {}
+    if readable:
+        worker = _Worker(path, ["info", os.fspath(path), *readable]
+                         + ([] if value_range else ["norange"]))
+        try:
+            details = {g["address"]: g for g in json.loads(worker.read_line())}
+        finally:
+            worker.close()
+    out = []
+    for e in entries:
+        base = {"name": e.name, "address": e.address, "type": e.value_type}
+        if e.address in details:
+            out.append({**details[e.address], **base, "readable": True})
+        else:
+            out.append({**base, "readable": False, "reason": _unsupported(e),
+                        "active_voxels": None, "index_min": None, "index_max": None,
+                        "min": None, "max": None})
+    return out
 
 
 def read_vdb_header(path, grid: str):
-    """A :class:`~mitsuba_plugins.gridio.GridHeader` for grid ``grid`` of ``path``: its
-    active box grown by :data:`PAD` voxels, refusing what cannot be placed or stored."""
+    """A :class:`~mitsuba_plugins.gridio.GridHeader` for the grid ``grid`` addresses in
+    ``path`` (a unique name or ``name[k]``): its active box grown by :data:`PAD` voxels,
+    refusing what cannot be placed or stored."""
     from mitsuba_plugins.gridio import GridHeader, _check_shape
-    grids = vdb_info(path, value_range=False)
-    found = [g for g in grids if g["name"] == grid]
-    if not found:
-        names = ", ".join(repr(g["name"]) for g in grids) or "none"
-        _fail(path, f"no grid named {grid!r}; the file holds: {names}")
-    g = found[0]
-    if g["type"] not in CHANNELS:
-        _fail(path, f"grid {grid!r} holds {g['type']} values; allowed: "
-                    f"{', '.join(CHANNELS)}")
+    from mitsuba_plugins.vdbfile import select as select_grid
+    try:
+        entry = select_grid(grid_list(path), grid)
+    except LookupError as error:
+        _fail(path, str(error))
+    reason = _unsupported(entry)
+    if reason:
+        _fail(path, f"grid {entry.address!r} {reason}")
+    g = vdb_info(path, value_range=False, addresses=[entry.address])[0]
+    grid = entry.address
+    if "level" in str(g.get("class", "")).lower():
+        _fail(path, f"grid {grid!r} is a level set; allowed: a fog volume (a level set is a "
+                    "surface: convert it to a fog volume, e.g. OpenVDB's sdfToFogVolume)")
     background = np.asarray(g["background"], dtype=np.float64)
     if np.any(background != 0):
         _fail(path, f"grid {grid!r} has background {g['background']}; allowed: 0 (a "
@@ -109,6 +246,10 @@ def read_vdb_header(path, grid: str):
         _fail(path, f"grid {grid!r} has a singular index-to-world transform")
     lo = np.array(g["index_min"] if g["index_min"] is not None else [0, 0, 0])
     hi = np.array(g["index_max"] if g["index_max"] is not None else [0, 0, 0])
+    if np.any(lo - PAD < -INDEX_LIMIT) or np.any(hi + PAD > INDEX_LIMIT - 1):
+        _fail(path, f"grid {grid!r} has active voxels at index {lo.tolist()} - {hi.tolist()}; "
+                    f"allowed: indices in [-2^30 + {PAD}, 2^30 - {PAD + 1}] (OpenVDB's "
+                    "reader fails beyond)")
     nx, ny, nz = (hi - lo + 1 + 2 * PAD).tolist()
     shape = (nz, ny, nx, CHANNELS[g["type"]])
     _check_shape(path, shape)
@@ -124,22 +265,12 @@ def _reader(header, command: str, *args):
     the worker's last line). The worker is killed if the caller stops early."""
     z, y, x, _ = header.shape
     i0, j0, k0 = header.index_min
-    argv = [command, header.path, header.vdb_grid, i0, j0, k0, x, y, z, *args]
-    with subprocess.Popen([openvdb_python(header.path), str(WORKER), *map(str, argv)],
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
-        def read(count: int) -> bytes:
-            raw = proc.stdout.read(count)
-            if len(raw) != count:
-                proc.wait()
-                reason = proc.stderr.read().decode(errors="replace").strip()
-                _fail(header.path, "reading grid values failed ("
-                      + (reason.splitlines()[-1] if reason else "stream ended early") + ")")
-            return raw
-        try:
-            yield read
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    worker = _Worker(header.path, [command, header.path, header.vdb_grid, i0, j0, k0, x, y,
+                                   z, *args])
+    try:
+        yield worker.read
+    finally:
+        worker.close()
 
 
 def iter_vdb_slabs(header, slab_bytes: int):
@@ -156,8 +287,8 @@ def iter_vdb_slabs(header, slab_bytes: int):
 
 def iter_vdb_bricks(header):
     """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
-    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker, which never holds
-    more than one row of the box; only stored bricks cross the pipe."""
+    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker in tiles (it never
+    holds a whole row of the box); only stored bricks cross the pipe."""
     from mitsuba_plugins.bricks import BRICK, SIDE
     z, _, _, c = header.shape
     with _reader(header, "bricks") as read:
@@ -177,19 +308,19 @@ def write_vdb(path, name: str, shape, index_to_world: np.ndarray, slabs) -> None
     (4x4, column vectors) applied to (i, j, k)."""
     z, y, x, c = shape
     rows = np.asarray(index_to_world, dtype=np.float64)[:3].ravel().tolist()
-    args = ["write", os.fspath(path), name, x, y, z, c, *rows]
-    with subprocess.Popen([openvdb_python(path), str(WORKER), *map(str, args)],
-                          stdin=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+    worker = _Worker(path, ["write", os.fspath(path), name, x, y, z, c, *rows],
+                     stdin=subprocess.PIPE)
+    try:
         try:
             for _, slab in slabs:
-                proc.stdin.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
-            proc.stdin.close()
+                worker.proc.stdin.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
+            worker.proc.stdin.close()
         except BrokenPipeError:
             pass
-        if proc.wait() != 0:
-            reason = proc.stderr.read().decode(errors="replace").strip()
-            _fail(path, "writing failed (" + (reason.splitlines()[-1] if reason else
-                                              "no message") + ")")
+        if worker.proc.wait() != 0:
+            _fail(path, "writing failed (" + worker.reason("no message") + ")")
+    finally:
+        worker.close()
 
 
 def grid_to_world(header) -> np.ndarray:

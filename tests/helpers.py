@@ -1,16 +1,19 @@
 """Thin glue between the tests and the shared harness in mitsuba_plugins.tools.stats."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_plugins import vdb
 from mitsuba_plugins.tools import stats
 from mitsuba_plugins.validity import counted
 
@@ -244,3 +247,21 @@ def check_segment_bounds(medium, grid):
     worst = np.max(sigma_t - bound)
     assert worst <= 0.0, f"sigma_t exceeds the segment majorant by {worst}"
     return sigma_maj[valid]
+
+
+# -- OpenVDB files written by OpenVDB itself ----------------------------------------------
+def make_vdb(path, *bodies: str, **arrays) -> dict:
+    """Run ``bodies`` (code pieces, each dedented) in Debian's Python with ``vdb`` (pyopenvdb) and ``np`` imported, the
+    ``arrays`` loaded by name; it appends grids to ``grids`` and may fill the dict ``out``
+    (returned, e.g. world positions from the file's transform). Writes ``path``."""
+    files = {}
+    for name, array in arrays.items():
+        files[name] = str(path.with_name(f"{name}.npy"))
+        np.save(files[name], array)
+    script = "import json, pyopenvdb as vdb, numpy as np\ngrids, out = [], {}\n"
+    script += "".join(f"{k} = np.load({v!r})\n" for k, v in files.items())
+    script += "".join(textwrap.dedent(b).strip("\n") + "\n" for b in bodies)
+    script += f"\nvdb.write({str(path)!r}, grids=grids)\nprint(json.dumps(out))\n"
+    proc = subprocess.run([vdb.DEFAULT_PYTHON, "-c", script], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -5,34 +5,16 @@ same data stored as ``.vol``. The tests write their own small ``.vdb`` files wit
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
-import textwrap
 
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SMOKE, assert_same_expectation, camera, estimate, media_scene, medium_at
+from helpers import (SMOKE, assert_same_expectation, camera, estimate, make_vdb, media_scene,
+                     medium_at)
 from mitsuba_plugins import gridio, vdb
 from mitsuba_plugins.tools import cli
-
-
-def make_vdb(path, *bodies: str, **arrays) -> dict:
-    """Run ``bodies`` (code pieces, each dedented) in Debian's Python with ``vdb`` (pyopenvdb) and ``np`` imported, the
-    ``arrays`` loaded by name; it appends grids to ``grids`` and may fill the dict ``out``
-    (returned, e.g. world positions from the file's transform). Writes ``path``."""
-    files = {}
-    for name, array in arrays.items():
-        files[name] = str(path.with_name(f"{name}.npy"))
-        np.save(files[name], array)
-    script = "import json, pyopenvdb as vdb, numpy as np\ngrids, out = [], {}\n"
-    script += "".join(f"{k} = np.load({v!r})\n" for k, v in files.items())
-    script += "".join(textwrap.dedent(b).strip("\n") + "\n" for b in bodies)
-    script += f"\nvdb.write({str(path)!r}, grids=grids)\nprint(json.dumps(out))\n"
-    proc = subprocess.run([vdb.DEFAULT_PYTHON, "-c", script], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def sigma_t_at(medium, points) -> np.ndarray:

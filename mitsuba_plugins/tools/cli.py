@@ -112,19 +112,28 @@ def cmd_reference(args) -> int:
 
 
 def cmd_grid_info(args) -> int:
+    """Every file is reported, readable or not; the status is 1 if any is invalid or
+    unreadable (each named on its own line)."""
+    from mitsuba_plugins.gridio import GridFileError
     from mitsuba_plugins.tools import grid_info
     invalid = 0
     for path in args.files:
-        info = grid_info.grid_info(path, args.majorant_resolution, args.grid)
+        try:
+            info = grid_info.grid_info(path, args.majorant_resolution, args.grid)
+        except GridFileError as error:
+            print(f"mitsuba-plugins: error: {user_message(error)}", file=sys.stderr,
+                  flush=True)
+            invalid += 1
+            continue
         if args.json:
             info["null_means"] = output.JSON_NULL_MEANS
-            print(output.dumps_json(info, indent=2))
+            print(output.dumps_json(info, indent=2), flush=True)
         else:
-            print(grid_info.format_info(info))
-        invalid += bool(info["nonfinite"] or info["negative"])
+            print(grid_info.format_info(info), flush=True)
+        invalid += bool(info.get("nonfinite") or info.get("negative"))
     if invalid:
         print(f"mitsuba-plugins: error: {invalid} of {len(args.files)} grid file(s) invalid "
-              "(see INVALID above); grid_medium refuses them", file=sys.stderr)
+              "or unreadable (see above); grid_medium refuses them", file=sys.stderr)
     return 1 if invalid else 0
 
 
@@ -208,8 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     gi = gsub.add_parser("info", help="shape, bounds, density statistics, majorant-grid "
                                       "emptiness")
     gi.add_argument("files", nargs="+", help=".vol, .npy or .vdb grid files")
-    gi.add_argument("--grid", default="density",
-                    help="which grid of a .vdb file (default density); all are listed")
+    gi.add_argument("--grid", help="which grid of a .vdb file to read: a name, or name[K] for "
+                                   "the K-th of several of one name (default density, if "
+                                   "there is exactly one); all are listed")
     gi.add_argument("--majorant-resolution", type=int, default=16,
                     help="majorant cells per axis, in [1, 1024] (default 16)")
     gi.add_argument("--json", action="store_true", help="print JSON")
@@ -220,8 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     gc.add_argument("target", help=".vol (keeps the world box), .npy, or .vdb (keeps the "
                                    "placement; zeros stay inactive)")
     gc.add_argument("--grid", default="density",
-                    help="which grid of a .vdb to read, and the name of the grid written "
-                         "to a .vdb (default density)")
+                    help="which grid of a .vdb to read (a name, or name[K] for the K-th of "
+                         "several of one name), and the name of the grid written to a .vdb "
+                         "(default density)")
     gc.set_defaults(func=cmd_grid_convert)
     return p
 

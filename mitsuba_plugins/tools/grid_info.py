@@ -8,14 +8,35 @@ import numpy as np
 from mitsuba_plugins.gridio import iter_slabs, read_header, world_box
 
 
-def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
+def _vdb_grids(path) -> list:
+    from mitsuba_plugins.vdb import vdb_info
+    keys = ("name", "address", "type", "readable", "active_voxels", "index_min", "index_max",
+            "min", "max")
+    return [{k: g.get(k) for k in keys} | ({"reason": g["reason"]} if not g["readable"]
+                                             else {}) for g in vdb_info(path)]
+
+
+def grid_info(path, cells: int = 16, grid: str | None = None) -> dict:
     """Summary of a grid file, read slab by slab: shape, bounds, density statistics,
     the fraction of majorant-grid volume (``cells`` per axis) whose bound is 0, and the
     memory its (dense) storage takes; for a ``.vdb``, every grid of the file and the
-    world bounds from its transform."""
+    world bounds from its transform.
+
+    ``grid``: which grid of a ``.vdb`` to read (a name, or ``name[k]``). When not given
+    (``density``) and the file has no single grid of that name, the summary lists the
+    file's grids only (``grid`` None, ``note`` says why)."""
     from mitsuba_plugins.bricks import SIDE, BrickBuilder
+    from mitsuba_plugins.gridio import GridFileError
     from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
-    header = read_header(path, grid)
+    try:
+        header = read_header(path, grid or "density")
+    except GridFileError as error:
+        if grid is not None or not os.fspath(path).lower().endswith(".vdb"):
+            raise
+        grids = _vdb_grids(path)         # a file that cannot be listed raises here
+        reason = str(error).split("': ", 1)[-1]
+        return {"file": os.fspath(path), "format": "vdb", "grid": None,
+                "note": f"{reason}; read one with --grid ADDRESS", "vdb_grids": grids}
     z, y, x, c = header.shape
     builder = MajorantBuilder(header.shape, resolution_for(header.shape, cells))
     bricks = BrickBuilder(header.shape, keep_blocks=False)
@@ -33,12 +54,9 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
     lo, hi, _ = world_box(header)
     bbox, bbox_from, extra = (lo, hi), "header" if header.bbox else "unit cube", {}
     if header.vdb_grid is not None:
-        from mitsuba_plugins.vdb import vdb_info
         bbox_from = "index-to-world transform (active box + 1 voxel)"
         extra = {"grid": header.vdb_grid, "index_min": list(header.index_min),
-                 "vdb_grids": [{k: g[k] for k in ("name", "type", "active_voxels",
-                                                  "index_min", "index_max", "min", "max")}
-                               for g in vdb_info(path)]}
+                 "vdb_grids": _vdb_grids(path)}
     return {
         "file": header.path,
         "format": os.path.splitext(header.path)[1][1:],
@@ -63,8 +81,32 @@ def grid_info(path, cells: int = 16, grid: str = "density") -> dict:
     }
 
 
+def _grid_lines(info: dict) -> list:
+    lines = []
+    for g in info.get("vdb_grids", []):
+        mark = " (read)" if g["address"] == info.get("grid") else ""
+        if not g["readable"]:
+            lines.append((f"grid {g['address']!r}", f"{g['type']}: not readable here "
+                                                   f"({g['reason']})"))
+            continue
+        box = (f"index {g['index_min']} - {g['index_max']}" if g["index_min"] is not None
+               else "no active voxels")
+        lines.append((f"grid {g['address']!r}{mark}", f"{g['type']}, {g['active_voxels']} "
+                                                      f"active voxels, {box}, values "
+                                                      f"{g['min']} - {g['max']}"))
+    return lines
+
+
+def _aligned(lines: list) -> str:
+    width = max(len(k) for k, _ in lines)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
+
+
 def format_info(info: dict) -> str:
     """``grid_info`` as aligned text lines."""
+    if info.get("grid", "") is None:                # a .vdb listed, no grid read
+        return _aligned([("file", info["file"]), ("format", "vdb"),
+                         *_grid_lines(info), ("note", info["note"])])
     res = " x ".join(map(str, info["resolution"]))
     mres = " x ".join(map(str, info["majorant_resolution"]))
     fmt = lambda v: "[" + ", ".join(f"{a:g}" for a in v) + "]"  # noqa: E731
@@ -84,16 +126,9 @@ def format_info(info: dict) -> str:
                           f"{info['majorant_empty_fraction']:.4f}; mean cell bound / max "
                           f"{info['majorant_mean_over_max']:.4f}"),
     ]
-    for g in info.get("vdb_grids", []):
-        box = (f"index {g['index_min']} - {g['index_max']}" if g["index_min"] is not None
-               else "no active voxels")
-        mark = " (read)" if g["name"] == info["grid"] else ""
-        lines.append((f"grid {g['name']!r}{mark}", f"{g['type']}, {g['active_voxels']} active "
-                                                   f"voxels, {box}, values {g['min']} - "
-                                                   f"{g['max']}"))
+    lines += _grid_lines(info)
     if info["nonfinite"] or info["negative"]:
         lines.append(("INVALID", f"{info['nonfinite']} non-finite value(s)"
                       + (", negative values" if info["negative"] else "")
                       + "; grid_medium will refuse this file"))
-    width = max(len(k) for k, _ in lines)
-    return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
+    return _aligned(lines)
