@@ -90,7 +90,9 @@ def test_cli_equal_time(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--time-budget", "0"], "--time-budget = 0.0 is invalid; allowed: a finite number"),
+    (["--time-budget", "0"], "--time-budget = 0.0 is invalid; allowed: a number of seconds in"),
+    (["--time-budget", "1e300"], "allowed: a number of seconds in (0, 604800]"),  # years
+    (["-i", "direct_mis,direct,direct_mis"], "-i lists 'direct_mis' more than once"),
     (["--spp", "2", "--passes", "4"], "--spp (2) must be >= --passes (4)"),
     (["--spp-per-pass", "0", "--time-budget", "1"], "--spp-per-pass = 0 is invalid; allowed: an integer >= 1"),
     (["--ref-spp", "8"], "--ref-spp must be >= 16"),
@@ -100,9 +102,25 @@ def test_cli_equal_time(tmp_path, capsys):
     (["--seed", "-1"], "--seed = -1 is invalid; allowed: an integer in [0, 4294967295]"),
 ])
 def test_cli_rejects_bad_options(args, message, capsys, tmp_path):
-    assert cli.main(["compare", SCENE, "-i", "path_rr", "--res", "8", "--cache", str(tmp_path),
+    integrators = [] if "-i" in args else ["-i", "path_rr"]
+    assert cli.main(["compare", SCENE, *integrators, "--res", "8", "--cache", str(tmp_path),
                      *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_black_reference_is_an_error_not_an_infinite_efficiency(tmp_path, capsys):
+    """A scene without emitters renders black: relative MSE 0 and efficiency inf were
+    reported without a word."""
+    scene = tmp_path / "dark.xml"
+    scene.write_text("""<scene version="3.0.0">
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>
+            <integer name="height" value="8"/></film></sensor>
+        <shape type="sphere"><bsdf type="diffuse"/></shape></scene>""")
+    assert cli.main(["compare", str(scene), "-i", "path_rr,path", "--spp", "4", "--passes",
+                     "2", "--ref-spp", "16", "-q", "--cache", str(tmp_path / "c"),
+                     "-o", str(tmp_path / "o")]) == 2
+    assert "reference image (path) is black: the scene has no emitter" in \
+        capsys.readouterr().err
 
 
 def test_reference_override(tmp_path):

@@ -135,6 +135,62 @@ def test_bad_scheduler_fails_in_one_line(tmp_path):
     assert not (tmp_path / "r" / "mean.exr").exists()
 
 
+@pytest.fixture
+def silent_port():
+    """A TCP port on 127.0.0.1 that accepts connections and never answers."""
+    import socket
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    accepted = []
+    stop = threading.Event()
+
+    def serve():
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                accepted.append(server.accept()[0])
+            except OSError:
+                pass
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    yield server.getsockname()[1]
+    stop.set()
+    thread.join()
+    for conn in accepted:
+        conn.close()
+    server.close()
+
+
+def test_a_scheduler_that_never_answers_fails_within_seconds(tmp_path, silent_port):
+    """A port that accepts and stays silent (Dask's client once waited there for ever)."""
+    t0 = time.time()
+    proc = start_cli("reference", SCENE, "-i", "path_rr", "--spp", 4, "--passes", 2, "--res", 8,
+                     "--scheduler", f"tcp://127.0.0.1:{silent_port}", "-o", tmp_path / "r")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and err.count("\n") == 1, err
+    assert "no Dask scheduler answered within 5 s" in err
+    assert time.time() - t0 < 40
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--scheduler", "", "--scheduler = '' is invalid; allowed: a Dask scheduler's address"),
+    ("--scheduler", "tls://127.0.0.1:8786", "allowed: a Dask scheduler's address tcp://"),
+    ("--scheduler", "ucx://127.0.0.1:8786", "allowed: a Dask scheduler's address tcp://"),
+    ("--workers", "1000", "--workers = 1000 is invalid; allowed: an integer in [1, "),
+    ("-i", "path_rr:max_depth=-7", "path_rr: parameter 'max_depth' = -7 is invalid"),
+])
+def test_bad_reference_options_fail_in_one_line_before_any_worker(tmp_path, option, value,
+                                                                  message):
+    args = ["reference", SCENE, "--spp", 4, "--passes", 2, "--res", 8, "-o", tmp_path / "r"]
+    if option != "-i":
+        args += ["-i", "path_rr"]
+    proc = start_cli(*args, option, value)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "r").exists()
+
+
 def test_options_are_checked_before_any_work(tmp_path):
     proc = start_cli("reference", SCENE, "-i", "path_rr", "--spp", 10, "--passes", 4,
                 "-o", tmp_path / "r")

@@ -27,6 +27,8 @@ from mitsuba_plugins import output
 EXIT_INTERRUPTED = 130
 #: largest seed: Mitsuba's samplers take an unsigned 32-bit seed
 MAX_SEED = 2 ** 32 - 1
+#: longest --time-budget per integrator (a week): a larger one is a typo, not a plan
+MAX_TIME_BUDGET = 7 * 24 * 3600.0
 
 _ERROR_LINE = re.compile(r"^\s*(?:[\w.]+\.)?(\w*(?:Error|Exception)): (.+)$")
 
@@ -96,10 +98,16 @@ def reference_folder(args) -> Path:
 
 
 def cmd_reference(args) -> int:
-    from mitsuba_plugins.tools.compare import parse_integrator
+    import mitsuba as mi
+    from mitsuba_plugins.tools.compare import load_scene, parse_integrator
     from mitsuba_plugins.tools.reference import reference
     folder = reference_folder(args)
-    info = reference(args.scene, parse_integrator(args.integrator), args.spp, args.passes,
+    integrator = parse_integrator(args.integrator)
+    # the scene and the integrator's parameters are checked here, once, before any
+    # worker starts (a bad one raised in every task, each with Dask's traceback)
+    load_scene(args.scene, args.res)
+    mi.load_dict(integrator)
+    info = reference(args.scene, integrator, args.spp, args.passes,
                      folder, res=args.res, seed=args.seed, workers=args.workers,
                      scheduler=args.scheduler, threads=args.threads, variant=args.variant,
                      progress=not args.quiet)
@@ -263,12 +271,16 @@ def check_options(args) -> None:
         _int_range(args, "--spp-per-pass", 1)
         _int_range(args, "--ref-spp", 1)
         budget = args.time_budget
-        if budget is not None and not (math.isfinite(budget) and budget > 0):
-            raise OptionError(f"--time-budget = {budget} is invalid; allowed: a finite number "
-                              "of seconds > 0")
+        if budget is not None and not (math.isfinite(budget) and 0 < budget <= MAX_TIME_BUDGET):
+            raise OptionError(f"--time-budget = {budget} is invalid; allowed: a number of "
+                              f"seconds in (0, {MAX_TIME_BUDGET:g}]")
         from mitsuba_plugins.tools import report as rep
         from mitsuba_plugins.tools.compare import label, parse_integrator
         labels = [label(parse_integrator(s)) for s in args.integrators.split(",") if s.strip()]
+        twice = sorted({name for name in labels if labels.count(name) > 1})
+        if twice:
+            raise OptionError(f"-i lists {', '.join(repr(n) for n in twice)} more than once; "
+                              "allowed: each integrator (with its parameters) once")
         folder = compare_folder(args)
         output.check_folder_target(folder, option="-o/--output")
         output.check_targets([folder / name for name in rep.output_names(labels)],
@@ -276,12 +288,18 @@ def check_options(args) -> None:
         output.check_folder_target(args.cache, option="--cache")
     elif args.command == "reference":
         _int_range(args, "--passes", 1)
-        _int_range(args, "--workers", 1)
+        _int_range(args, "--workers", 1, os.cpu_count() or 1)
         _int_range(args, "--threads", 1)
         if args.spp % args.passes:
             raise OptionError(f"--spp = {args.spp} is invalid; allowed: a multiple of "
                               f"--passes ({args.passes})")
         output.check_folder_target(reference_folder(args), option="-o/--output")
+    if args.command in ("compare", "reference") and args.scheduler is not None:
+        from mitsuba_plugins.tools.reference import ReferenceError, check_scheduler
+        try:
+            check_scheduler(args.scheduler)
+        except ReferenceError as error:
+            raise OptionError(str(error)) from None
     elif args.command == "grid" and args.grid_command == "info":
         _int_range(args, "--majorant-resolution", 1, 1024)
     # grid convert checks its target itself (gridio.convert), before it reads anything

@@ -345,6 +345,11 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
         ref_spp = ref_spp or max(1024, 16 * spp)
     if not integrators:
         raise ValueError("no integrators given")
+    labels = [label(spec) for spec in integrators]
+    twice = sorted({name for name in labels if labels.count(name) > 1})
+    if twice:
+        raise ValueError(f"-i lists {', '.join(repr(n) for n in twice)} more than once; "
+                         "allowed: each integrator (with its parameters) once")
     scene = load_scene(scene_path, res)
     references = {}
     runs = [_Run(spec, reference) for spec in integrators]   # validated before any rendering
@@ -354,6 +359,12 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
                                                          ref_spp, Path(cache_dir), progress=progress,
                                                          scheduler=scheduler)
         run.use_reference(references[run.reference])
+    for name, ref in references.items():
+        if not np.any(ref.mean):
+            why = "the scene has no emitter" if not scene.emitters() else \
+                "no light reaches the sensor"
+            raise ValueError(f"the reference image ({name}) is black: {why}, so relative MSE "
+                             "and efficiency are undefined")
     for run in runs:
         run.warm_up(scene, spp_per_pass)
     bar = None

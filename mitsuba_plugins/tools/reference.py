@@ -149,16 +149,13 @@ def connect(workers: int | None = None, scheduler: str | None = None, quiet: boo
         raise ReferenceError("Dask's 'distributed' is not installed: pip install "
                              "'mitsuba-plugins[distributed]' (or pip install distributed)") from None
     if scheduler:
-        try:
-            client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
-        except (OSError, TimeoutError, ValueError) as error:
-            reason = str(error).strip().splitlines()[0] if str(error).strip() else \
-                type(error).__name__
-            raise ReferenceError(f"--scheduler '{scheduler}': no Dask scheduler answered "
-                                 f"within {CONNECT_TIMEOUT:g} s ({reason})") from None
-        return client, None
+        check_scheduler(scheduler)
+        return _client(scheduler, Client), None
     cores = os.cpu_count() or 1
     workers = workers or DEFAULT_WORKERS
+    if workers > cores:
+        raise ReferenceError(f"--workers = {workers} is invalid; allowed: an integer in "
+                             f"[1, {cores}] (the cores of this machine)")
     threads = max(1, cores // workers)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                            dashboard_address=":0",
@@ -167,6 +164,64 @@ def connect(workers: int | None = None, scheduler: str | None = None, quiet: boo
     client = Client(cluster)
     client._mitsuba_plugins_cluster = cluster   # closed by close()
     return client, threads
+
+
+#: address schemes --scheduler accepts (Dask's others need set-up this tool does not do:
+#: certificates for tls://, UCX for ucx://)
+SCHEMES = ("tcp",)
+
+
+def check_scheduler(address: str) -> None:
+    """Refuse an address that is empty or of a scheme other than tcp://, in one line."""
+    scheme, sep, rest = address.partition("://")
+    if not sep:
+        scheme, rest = "tcp", address
+    host, _, port = rest.rpartition(":")
+    if scheme not in SCHEMES or not host or not port.isdigit():
+        raise ReferenceError(f"--scheduler = {address!r} is invalid; allowed: a Dask "
+                             "scheduler's address tcp://HOST:PORT (or HOST:PORT)")
+
+
+def _reason(error: BaseException) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def _client(scheduler: str, Client):
+    """A client of the scheduler at ``scheduler``, or one line within about
+    :data:`CONNECT_TIMEOUT` seconds: Dask's handshake is tried first with a deadline
+    (``Client(timeout=...)`` alone waited for ever on a port that accepts and never
+    answers), then the client is made in a thread that is given up after the same time."""
+    import asyncio
+    import threading
+    from distributed.comm import connect as comm_connect
+
+    def fail(reason):
+        raise ReferenceError(f"--scheduler '{scheduler}': no Dask scheduler answered within "
+                             f"{CONNECT_TIMEOUT:g} s ({reason})") from None
+
+    async def handshake():
+        comm = await comm_connect(scheduler, timeout=CONNECT_TIMEOUT)
+        await comm.close()
+    try:
+        asyncio.run(asyncio.wait_for(handshake(), CONNECT_TIMEOUT))
+    except asyncio.TimeoutError:
+        fail("no handshake")
+    except (OSError, TimeoutError, ValueError, TypeError, RuntimeError) as error:
+        fail(_reason(error))
+    made = {}
+
+    def make():
+        try:
+            made["client"] = Client(scheduler, timeout=f"{CONNECT_TIMEOUT}s")
+        except Exception as error:   # handed to the caller as one line
+            made["error"] = error
+    thread = threading.Thread(target=make, daemon=True, name="dask-connect")
+    thread.start()
+    thread.join(2 * CONNECT_TIMEOUT)
+    if "client" in made:
+        return made["client"]
+    fail(_reason(made["error"]) if "error" in made else "the client did not register")
 
 
 def close(client) -> None:
