@@ -52,7 +52,7 @@ class SceneMedia:
         self.scene_extent = diagonal(scene.bbox())
         self.any = bool(media)
         homogeneous = [m for m in media if m.is_homogeneous()]
-        self.trackers = {id(m): MediumTracker(m, self.scene_extent) for m in media
+        self.trackers = {id(m): MediumTracker(m, self.scene_extent, scene.bbox()) for m in media
                          if not m.is_homogeneous()}
         self.homogeneous = bool(homogeneous)
         self.heterogeneous = bool(self.trackers)
