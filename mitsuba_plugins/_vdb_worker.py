@@ -44,8 +44,9 @@ import json
 import os
 import sys
 
-#: most bytes of one copy out of the grid (a tile of a brick row, a band of a slice)
-CHUNK_BYTES = 1 << 26
+#: most bytes of one copy out of the grid (a tile of a brick row, a band of a slice);
+#: ``MITSUBA_PLUGINS_VDB_CHUNK`` overrides it (the tests cut tiny tiles with it)
+CHUNK_BYTES = int(os.environ.get("MITSUBA_PLUGINS_VDB_CHUNK") or 1 << 26)
 EXIT_FAILED = 3
 
 # The data channel: the original standard output. Everything else printed goes to stderr.
@@ -237,10 +238,11 @@ def bricks(path, address, i0, j0, k0, nx, ny, nz):
                     blocks.append(found)
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
         q = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+        order = np.lexsort((q, r))          # row-major, as one piece would list them
         DATA.write(struct.pack("<ii", row, r.size))
-        DATA.write(r.astype("<i4").tobytes() + q.astype("<i4").tobytes())
-        for found in blocks:
-            DATA.write(np.ascontiguousarray(found, dtype="<f4").tobytes())
+        DATA.write(r[order].astype("<i4").tobytes() + q[order].astype("<i4").tobytes())
+        if blocks:
+            DATA.write(np.ascontiguousarray(np.concatenate(blocks)[order], dtype="<f4").tobytes())
     DATA.flush()
 
 

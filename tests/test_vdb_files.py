@@ -298,3 +298,34 @@ def test_a_three_channel_grid_converts_to_vdb_and_back(tmp_path, capsys):
     lo, hi = nz.min(axis=0), nz.max(axis=0)
     np.testing.assert_array_equal(back[1:-1, 1:-1, 1:-1],
                                   original[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1])
+
+
+@pytest.mark.parametrize("chunk", [4096, 40000])
+def test_tiles_and_bands_read_what_whole_rows_read(tmp_path, monkeypatch, chunk):
+    """The reader cut into tiny tiles (brick rows) and bands (slices) reads the same
+    values and the same bricks as in one piece: a random grid with empty space, 3
+    channels, a box that is no multiple of 8."""
+    from mitsuba_plugins.bricks import BrickBuilder
+    rng = np.random.default_rng(4)
+    values = rng.random((37, 29, 23, 3)).astype(np.float32)
+    values[5:20, :, 3:11] = 0.0
+    make_vdb(tmp_path / "rgb.vdb", """
+        g = vdb.Vec3SGrid(); g.name = "density"
+        g.copyFromArray(np.ascontiguousarray(values.transpose(2, 1, 0, 3)), ijk=(-4, 2, 9))
+        grids.append(g)""", values=values)
+
+    def read():
+        header = gridio.read_header(tmp_path / "rgb.vdb")
+        data, _ = gridio.read_grid(tmp_path / "rgb.vdb")
+        builder = BrickBuilder(header.shape)
+        for row, cols, blocks in vdb.iter_vdb_bricks(header):
+            builder.add_row(row, cols, blocks)
+        return data, builder.finish()
+    whole, (index, pool, _, _) = read()
+    np.testing.assert_array_equal(whole[1:-1, 1:-1, 1:-1], values)
+    monkeypatch.setenv("MITSUBA_PLUGINS_VDB_CHUNK", str(chunk))
+    cut, (cut_index, cut_pool, _, _) = read()
+    np.testing.assert_array_equal(cut, whole)
+    np.testing.assert_array_equal(cut_index, index)
+    np.testing.assert_array_equal(cut_pool, pool)
+
