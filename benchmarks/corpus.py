@@ -39,23 +39,23 @@ def scenes(data: Path) -> list:
 
 
 def run(data: Path, variant: str, res: int, passes: int, spp: int, integrators,
-        only=None, seed: int = 0) -> list:
+        only=None, seed: int = 0, reference: str | None = None) -> list:
     mi.set_variant(variant)
     from mitsuba_plugins.tools import stats
     rows = []
     for path in scenes(data):
         if only and not any(o in path.stem for o in only):
             continue
-        reference = path.stem.rsplit("_", 1)[-1]        # volpath or volpathmis
-        scene = mi.load_file(str(path), res=res, integrator=reference)
+        named = reference or path.stem.rsplit("_", 1)[-1]   # volpath or volpathmis
+        scene = mi.load_file(str(path), res=res, integrator=named)
         t0 = time.perf_counter()
         ref = stats.render_passes(scene, passes, spp, mi.load_dict(
-            {"type": reference, "max_depth": MAX_DEPTH}), seed=seed)
+            {"type": named, "max_depth": MAX_DEPTH}), seed=seed)
         for name in integrators:
             est = stats.render_passes(scene, passes, spp, mi.load_dict(
                 {"type": name, "max_depth": MAX_DEPTH}), seed=seed + 1000)
             result = stats.compare(est, ref)
-            rows.append({"scene": path.stem, "integrator": name, "reference": reference,
+            rows.append({"scene": path.stem, "integrator": name, "reference": named,
                          "passed": result.passed,
                          "pixel_fail_percent": 100 * result.pixel_fail_fraction,
                          "block_failures": result.block_failures,
@@ -103,10 +103,13 @@ def main():
     p.add_argument("--spp", type=int, default=256, help="samples per pixel per pass")
     p.add_argument("--integrators", default=",".join(INTEGRATORS))
     p.add_argument("--only", help="comma-separated parts of scene names")
+    p.add_argument("--reference", help="reference integrator of every scene (default: the "
+                                       "one each scene names)")
     p.add_argument("--no-write", action="store_true")
     args = p.parse_args()
     rows = run(args.data, args.variant, args.res, args.passes, args.spp,
-               args.integrators.split(","), args.only.split(",") if args.only else None)
+               args.integrators.split(","), args.only.split(",") if args.only else None,
+               reference=args.reference)
     if not args.no_write:
         write(rows, args.variant, args)
     failed = [r for r in rows if not r["passed"]]
