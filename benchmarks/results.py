@@ -94,7 +94,8 @@ def gallery_cell(name: str, specs: list, reference, budget: float, ref_seconds: 
     import mitsuba as mi
     if variant and mi.variant() != variant:
         mi.set_variant(variant)
-    from mitsuba_plugins.tools.compare import compare, load_scene, parse_integrator, reference_for
+    from mitsuba_plugins.tools.compare import compare, parse_integrator, reference_for
+    from mitsuba_plugins.tools.scenes import load_scene
     path = str(ROOT / "scenes" / f"{name}.xml")
     integrators = [parse_integrator(s) for s in specs]
     ref = parse_integrator(reference) if reference else None

@@ -26,7 +26,8 @@ import numpy as np
 
 from mitsuba_plugins import output
 from mitsuba_plugins.tools import stats
-from mitsuba_plugins.tools.compare import cached_reference, load_scene
+from mitsuba_plugins.tools.compare import cached_reference
+from mitsuba_plugins.tools.scenes import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = [({"type": "direct_mis"}, {"type": "direct"}), ({"type": "path_rr"}, {"type": "path"})]

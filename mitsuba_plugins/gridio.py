@@ -25,100 +25,24 @@ device memory without holding a second full copy.
 """
 from __future__ import annotations
 
-import dataclasses
-import errno
 import os
 import re
-import stat
 import struct
 
 import numpy as np
+
+# the header types live in gridheader (vdb.py uses them without importing this module)
+from mitsuba_plugins.gridheader import (GRID_CHANNELS, MAX_VALUES, MIN_RESOLUTION,  # noqa: F401
+                                        GridFileError, GridHeader, check_regular_file,
+                                        check_shape as _check_shape, check_values,
+                                        fail as _fail)
 
 VOL_MAGIC = b"VOL"
 VOL_VERSION = 3
 VOL_ENCODING_FLOAT32 = 1
 VOL_HEADER = struct.Struct("<3sBiiiii6f")  # 48 bytes
-#: channel counts a density / albedo / emission grid may have
-GRID_CHANNELS = (1, 3)
-#: smallest resolution per axis (trilinear interpolation needs two samples)
-MIN_RESOLUTION = 2
 #: bytes per slab in :func:`iter_slabs` (whole z-slices, at least one)
 SLAB_BYTES = 1 << 20
-#: most values a dense grid may hold: Dr.Jit arrays are indexed with 32 bits
-MAX_VALUES = 2 ** 32 - 1
-
-
-class GridFileError(ValueError):
-    """A grid file is missing, malformed or holds invalid values."""
-
-
-@dataclasses.dataclass(frozen=True)
-class GridHeader:
-    """Shape and placement of a grid file, read without loading its data."""
-    path: str
-    shape: tuple  # (Z, Y, X, C)
-    bbox: tuple | None  # ((xmin, ymin, zmin), (xmax, ymax, zmax)); None for .npy
-    offset: int  # byte offset of the data
-    dtype: np.dtype  # on-disk element type
-    fortran_order: bool = False
-    vdb_grid: str | None = None  # .vdb: the grid read (mitsuba_plugins.vdb)
-    index_min: tuple | None = None  # .vdb: index of the box's first voxel
-    index_to_world: tuple | None = None  # .vdb: the file's 4x4 index -> world matrix
-
-    @property
-    def resolution(self) -> tuple:
-        """(X, Y, Z), Mitsuba's order."""
-        z, y, x, _ = self.shape
-        return (x, y, z)
-
-    @property
-    def channels(self) -> int:
-        return self.shape[3]
-
-    @property
-    def size(self) -> int:
-        return int(np.prod(self.shape))
-
-
-def _fail(path, what: str):
-    raise GridFileError(f"grid file '{path}': {what}")
-
-
-def _check_shape(path, shape):
-    z, y, x, c = shape
-    if c not in GRID_CHANNELS:
-        _fail(path, f"{c} channels; allowed: {' or '.join(map(str, GRID_CHANNELS))}")
-    if min(x, y, z) < MIN_RESOLUTION:
-        _fail(path, f"resolution {x} x {y} x {z} (X x Y x Z); each axis needs at least "
-                    f"{MIN_RESOLUTION} cells")
-    values = x * y * z * c
-    if values > MAX_VALUES:
-        _fail(path, f"{x} x {y} x {z} x {c} = {values:.4g} values; a dense grid holds at most "
-                    f"2^32 - 1 = {MAX_VALUES:.4g} (Dr.Jit's array index is 32 bits)")
-
-
-def check_regular_file(path) -> None:
-    """Raise :class:`GridFileError` unless ``path`` is a readable regular file, saying
-    what it is instead (missing, a folder, a symbolic-link loop, a FIFO or device:
-    opening a FIFO would block forever)."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        target = os.path.islink(path) and os.readlink(path)
-        _fail(path, f"a symbolic link to '{target}', which does not exist" if target
-              else "file does not exist")
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            _fail(path, "a symbolic link loop")
-        _fail(path, f"cannot be read ({error.strerror})")
-    if stat.S_ISDIR(st.st_mode):
-        _fail(path, "is a folder, not a grid file")
-    if not stat.S_ISREG(st.st_mode):
-        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else \
-            "a socket" if stat.S_ISSOCK(st.st_mode) else "a device"
-        _fail(path, f"is {kind}, not a regular file")
-    if not os.access(path, os.R_OK):
-        _fail(path, "is not readable (permission denied)")
 
 
 def read_header(path, grid: str = "density") -> GridHeader:
@@ -194,24 +118,6 @@ def _read_npy_header(path) -> GridHeader:
     if actual < expected:
         _fail(path, f"truncated data: {actual} bytes, the header announces {expected}")
     return GridHeader(path, tuple(int(s) for s in shape), None, offset, dtype, fortran_order)
-
-
-def check_values(path, name: str, values: np.ndarray, lo: float = 0.0,
-                 hi: float | None = None) -> None:
-    """Raise unless every value is finite and within [lo, hi] (an empty array passes:
-    a brick row or slab without stored values)."""
-    if values.size == 0:
-        return
-    bad = ~np.isfinite(values)
-    if bad.any():
-        _fail(path, f"{name}: {int(bad.sum())} non-finite value(s) (NaN or Inf)")
-    vmin = float(values.min())
-    if vmin < lo:
-        _fail(path, f"{name}: negative value {vmin:g}; allowed: >= {lo:g}")
-    if hi is not None:
-        vmax = float(values.max())
-        if vmax > hi:
-            _fail(path, f"{name}: value {vmax:g} above {hi:g}; allowed: [{lo:g}, {hi:g}]")
 
 
 def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):

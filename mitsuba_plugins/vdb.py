@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mitsuba_plugins.gridheader import GridHeader, check_shape
+from mitsuba_plugins.gridheader import fail as _fail
+
 WORKER = Path(__file__).with_name("_vdb_worker.py")
 #: where OpenVDB's Python module is looked for (the variable, if set, alone)
 PYTHON_VARIABLE = "MITSUBA_PLUGINS_VDB_PYTHON"
@@ -40,9 +43,7 @@ CHANNELS = {"float": 1, "half": 1, "vec3s": 3}
 PAD = 1
 
 
-def _fail(path, what: str):
-    from mitsuba_plugins.gridio import GridFileError
-    raise GridFileError(f"grid file '{path}': {what}")
+
 
 
 @functools.lru_cache(maxsize=None)
@@ -216,10 +217,9 @@ def vdb_info(path, value_range: bool = True, addresses=None) -> list:
 
 
 def read_vdb_header(path, grid: str):
-    """A :class:`~mitsuba_plugins.gridio.GridHeader` for the grid ``grid`` addresses in
+    """A :class:`~mitsuba_plugins.gridheader.GridHeader` for the grid ``grid`` addresses in
     ``path`` (a unique name or ``name[k]``): its active box grown by :data:`PAD` voxels,
     refusing what cannot be placed or stored."""
-    from mitsuba_plugins.gridio import GridHeader, _check_shape
     from mitsuba_plugins.vdbfile import select as select_grid
     try:
         entry = select_grid(grid_list(path), grid)
@@ -252,7 +252,7 @@ def read_vdb_header(path, grid: str):
                     "reader fails beyond)")
     nx, ny, nz = (hi - lo + 1 + 2 * PAD).tolist()
     shape = (nz, ny, nx, CHANNELS[g["type"]])
-    _check_shape(path, shape)
+    check_shape(path, shape)
     return GridHeader(os.fspath(path), shape, None, 0, np.dtype("<f4"), vdb_grid=grid,
                       index_min=tuple((lo - PAD).tolist()),
                       index_to_world=tuple(map(tuple, matrix.tolist())))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mitsuba_plugins.tools import cli, report, stats
-from mitsuba_plugins.tools.compare import compare, reference_floor, scene_digest
+from mitsuba_plugins.tools.compare import compare, reference_floor
+from mitsuba_plugins.tools.scenes import scene_digest
 
 SCENE = "scenes/cornell_box.xml"
 PAIR = [{"type": "direct_mis"}, {"type": "direct"}]

@@ -70,3 +70,46 @@ def test_variant_bound_modules_are_registered():
              .joinpath("mitsuba_plugins").glob("*.py")
              if "DRJIT_STRUCT" in p.read_text() or "VARIANT = mi.variant()" in p.read_text()}
     assert bound - set(SUPPORT_MODULES) == set()
+
+
+def _module_name(path: Path, root: Path) -> str:
+    rel = path.relative_to(root).with_suffix("")
+    parts = list(rel.parts)
+    if parts[0] in ("integrators", "media"):
+        parts = ["mitsuba_plugins", *parts]
+    return ".".join(p for p in parts if p != "__init__")
+
+
+def test_no_import_circles():
+    """Issue 25: no two modules of the package import each other, directly or through
+    others, anywhere in their text (imports inside functions included: a circle hidden
+    that way still ties the two modules together)."""
+    root = Path(__file__).resolve().parents[1]
+    files = _core_files() + list((root / "mitsuba_plugins" / "tools").glob("*.py"))
+    modules = {_module_name(p, root): p for p in files}
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            found = []
+            if isinstance(node, ast.ImportFrom) and node.module:   # a submodule, else the module
+                found = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules
+                         else node.module for a in node.names]
+            elif isinstance(node, ast.Import):
+                found = [a.name for a in node.names]
+            targets |= {f for f in found if f in modules and f != name}
+        graph[name] = targets
+    state, circles = {}, []
+
+    def visit(node, stack):
+        state[node] = "open"
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == "open":
+                circles.append(stack[stack.index(nxt):] + [nxt])
+            elif nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = "done"
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+    assert circles == [], " ; ".join(" -> ".join(c) for c in circles)

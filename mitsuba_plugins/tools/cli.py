@@ -51,7 +51,8 @@ def render_target(args) -> Path:
 
 def cmd_render(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import load_scene, parse_integrator
+    from mitsuba_plugins.tools.compare import parse_integrator
+    from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
     out = render_target(args)
@@ -99,7 +100,8 @@ def reference_folder(args) -> Path:
 
 def cmd_reference(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import load_scene, parse_integrator
+    from mitsuba_plugins.tools.compare import parse_integrator
+    from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.reference import reference
     folder = reference_folder(args)
     integrator = parse_integrator(args.integrator)

@@ -15,7 +15,6 @@ import io
 import json
 import math
 import sys
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import numpy as np
 
 from mitsuba_plugins import output
 from mitsuba_plugins.tools import stats
+from mitsuba_plugins.tools.scenes import load_scene, scene_digest
 
 #: Our plugin -> the Mitsuba built-in that estimates the same quantity, and the
 #: parameters of ours that the built-in understands (passed on to the reference).
@@ -92,32 +92,6 @@ def reference_for(integrator: dict) -> dict:
                          f"{', '.join(sorted(set(BUILTIN) | set(BUILTIN_PARAMS)))}; or give "
                          "--reference")
     return twin
-
-
-def load_scene(path: str, res: int | None = None):
-    import mitsuba as mi
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"scene file not found: {path}")
-    params = {"res": str(res)} if res else {}
-    return mi.load_file(str(path), **params)
-
-
-def scene_digest(scene_path: str) -> str:
-    """SHA-256 of the scene file and of every file it names (``filename`` parameters,
-    ``<include>``), so that a changed grid or mesh invalidates cached references."""
-    path = Path(scene_path)
-    digest = hashlib.sha256(path.read_bytes())
-    try:
-        elements = list(ET.parse(path).iter())
-    except ET.ParseError:
-        elements = []
-    for el in elements:
-        name = el.get("filename") if el.tag == "include" else (
-            el.get("value") if el.get("name") == "filename" else None)
-        dep = path.parent / name if name else None
-        if dep is not None and dep.is_file():
-            digest.update(name.encode() + b"\0" + hashlib.sha256(dep.read_bytes()).digest())
-    return digest.hexdigest()
 
 
 #: what a reference-cache entry holds (``.npz``); ``checksum`` covers all the others

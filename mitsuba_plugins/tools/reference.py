@@ -73,7 +73,7 @@ def render_pass(scene_path: str, res, integrator: dict, spp: int, seed: int, var
         dr.set_thread_count(int(threads))
     if mi.variant() != variant:
         mi.set_variant(variant)   # registers the plugins in the worker process
-    from mitsuba_plugins.tools.compare import load_scene
+    from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
     key = (variant, str(scene_path), res, digest)
@@ -99,7 +99,7 @@ def _worker_name() -> str:
 
 
 def _settings(scene_path, res, integrator, spp_per_pass, seed, variant) -> dict:
-    from mitsuba_plugins.tools.compare import scene_digest
+    from mitsuba_plugins.tools.scenes import scene_digest
     return {"scene": str(Path(scene_path).resolve()), "scene_digest": scene_digest(scene_path),
             "res": res, "integrator": integrator, "spp_per_pass": spp_per_pass,
             "seed": seed, "variant": variant}
