@@ -156,7 +156,7 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
     """Each transmittance estimator on one segment through a grid: mean, exp(-tau),
     variance and time per 2^20 estimates (compiled first)."""
     medium = mi.load_dict(grid_medium(path, 5.0))
-    tracker = contract.MediumTracker(medium)
+    tracker = contract.tracker_for(medium)
     o, d = mi.Point3f(-1.2, -0.3, -0.9), dr.normalize(mi.Vector3f(1.0, 0.4, 0.6))
     ray = mi.Ray3f(dr.zeros(mi.Point3f, n) + o, dr.zeros(mi.Vector3f, n) + d)
     steps, length = 100000, 4.0

@@ -1,7 +1,7 @@
 """The medium contract: what our integrators ask of a medium (docs/architecture.md rule 2).
 
 * :class:`TrackedMedium`: the protocol a medium of ours offers (``grid_medium``);
-* :class:`MediumTracker`: the one adapter through which the walks
+* :class:`Tracker` (:func:`tracker_for`): the adapters through which the walks
   (:mod:`mitsuba_plugins.walk`) see any heterogeneous medium, ours or Mitsuba's;
 * :func:`medium_interaction`: the interaction at a point of a ray, for lookups.
 
@@ -16,7 +16,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.majorant import MajorantGrid
+from mitsuba_plugins.dda import MajorantGrid
+from mitsuba_plugins.spectra import probe_wavelengths
 
 VARIANT = mi.variant()
 
@@ -36,7 +37,7 @@ class TrackedMedium(Protocol):
 
     A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
 
-    * ``majorant_grid``: a :class:`~mitsuba_plugins.majorant.MajorantGrid` whose segments
+    * ``majorant_grid``: a :class:`~mitsuba_plugins.dda.MajorantGrid` whose segments
       bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py), and
       ``march_grid``, one as tight as the medium has (it may equal ``majorant_grid``),
       for marches in ``majorant`` step mode;
@@ -69,39 +70,33 @@ def diagonal(bbox) -> float:
     return float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min)))
 
 
-class MediumTracker:
-    """What the walks need from one heterogeneous medium: its majorant grid (the
-    per-cell bounds of a :class:`TrackedMedium`, or one global majorant for any other
-    medium, e.g. Mitsuba's ``heterogeneous``), its bounds and its coefficients."""
+class MediumProperties:
+    """What a medium is at a point (pbrt-v4's ``MediumProperties``): extinction,
+    scattering and emitted radiance ``Le`` (0 without emission), per channel."""
+    DRJIT_STRUCT = {"sigma_t": mi.Spectrum, "sigma_s": mi.Spectrum, "Le": mi.Spectrum}
 
-    def __init__(self, medium: mi.Medium, extent: float = np.inf, bbox=None):
+    def __init__(self, sigma_t=None, sigma_s=None, Le=None):
+        self.sigma_t, self.sigma_s, self.Le = sigma_t, sigma_s, Le
+
+
+class Tracker:
+    """What the walks need from one heterogeneous medium: its majorant grid, its bounds
+    and its properties; one adapter per kind of medium (:class:`GridTracker` for a
+    :class:`TrackedMedium`, :class:`MitsubaTracker` for any other), made by
+    :func:`tracker_for`.
+
+    ``grid`` / ``march_grid``: the bounds tracking and majorant-mode marches step by;
+    ``voxels``: ``(voxels per local unit on each axis, trilinear)`` of a grid whose hot
+    segments are refined, else None; ``hot``: a segment can hold more than
+    :data:`REFINE_OPTICAL_DEPTH` tentative collisions, so a crossing's work is not
+    bounded by construction and the walk keeps a work budget; ``diagonal``: of the
+    medium's world box (None: unbounded, as Mitsuba's media say)."""
+    has_emission = False
+    voxels = None
+    diagonal = None
+
+    def __init__(self, medium: mi.Medium):
         self.medium = medium
-        self.is_grid = bool(getattr(medium, "PROVIDES_TRACKING", False))
-        self.has_emission = bool(medium.has_emission) if self.is_grid else False
-        #: extinction differs between channels (Mitsuba's media: as they declare)
-        self.is_chromatic = bool(medium.is_chromatic) if self.is_grid else \
-            medium.has_spectral_extinction()
-        #: diagonal of the medium's world box (None: unbounded, as Mitsuba's media say)
-        self.diagonal = diagonal(medium.bbox) if self.is_grid else None
-        #: (voxels per local unit on each axis, interpolation) of a grid whose hot
-        #: segments are refined; None: no refinement
-        self.voxels = medium.refinement if self.is_grid else None
-        #: ``hot``: a segment can hold more than REFINE_OPTICAL_DEPTH tentative
-        #: collisions, so a crossing's work is not bounded by construction and the walk
-        #: keeps a work budget (``extent``: the longest stretch a ray can travel)
-        if self.is_grid:
-            self.grid = medium.majorant_grid
-            #: the bounds a ``majorant``-mode march steps by (the tightest there are)
-            self.march_grid = medium.march_grid
-            self.hot = self.voxels is not None
-        else:
-            # One segment over the whole ray: a 1-cell grid whose value equals the
-            # global majorant inside and outside. Read back once per render, and checked.
-            value = checked_majorant(medium, bbox)
-            self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
-                                     mi.ScalarTransform4f(), value)
-            self.march_grid = self.grid
-            self.hot = value * extent > REFINE_OPTICAL_DEPTH
 
     def bounds(self, ray: mi.Ray3f, t_max: mi.Float):
         """``(t_in, t_out)``: the ray's stretch inside the medium's box, clipped to
@@ -111,26 +106,68 @@ class MediumTracker:
         t_out = dr.clip(t1, 0.0, t_max)
         return t_in, dr.select(hit & (t_in < t_out), t_out, t_in)
 
-    def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
-        if self.is_grid:
-            return mi.Spectrum(self.medium.eval_sigma_t(mei, active))
-        _, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
-        return mi.Spectrum(sigma_t)
-
-    def coefficients(self, mei: mi.MediumInteraction3f, active):
-        """``(sigma_t, sigma_s, Le)`` at ``mei.p`` (``Le`` is 0 without emission)."""
-        if self.is_grid:
-            sigma_t = mi.Spectrum(self.medium.eval_sigma_t(mei, active))
-            sigma_s = sigma_t * mi.Spectrum(self.medium.eval_albedo(mei, active))
-            if self.has_emission:
-                return sigma_t, sigma_s, mi.Spectrum(self.medium.get_radiance(mei, active))
-            return sigma_t, sigma_s, mi.Spectrum(0.0)
-        sigma_s, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
-        return mi.Spectrum(sigma_t), mi.Spectrum(sigma_s), mi.Spectrum(0.0)
-
     def gray_sigma_t(self, ray: mi.Ray3f, t: mi.Float, active) -> mi.Float:
         """Largest channel of the extinction at ``ray(t)``."""
         return dr.max(self.sigma_t(medium_interaction(ray, t), active))
+
+
+class GridTracker(Tracker):
+    """A medium of ours (``PROVIDES_TRACKING``, e.g. ``grid_medium``): its majorant grid,
+    refinement and emission."""
+
+    def __init__(self, medium: mi.Medium):
+        super().__init__(medium)
+        self.has_emission = bool(medium.has_emission)
+        self.is_chromatic = bool(medium.is_chromatic)
+        self.diagonal = diagonal(medium.bbox)
+        self.voxels = medium.refinement
+        self.grid = medium.majorant_grid
+        self.march_grid = medium.march_grid
+        self.hot = self.voxels is not None
+
+    def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
+        return mi.Spectrum(self.medium.eval_sigma_t(mei, active))
+
+    def properties(self, mei: mi.MediumInteraction3f, active) -> MediumProperties:
+        sigma_t = mi.Spectrum(self.medium.eval_sigma_t(mei, active))
+        sigma_s = sigma_t * mi.Spectrum(self.medium.eval_albedo(mei, active))
+        Le = mi.Spectrum(self.medium.get_radiance(mei, active)) if self.has_emission else \
+            mi.Spectrum(0.0)
+        return MediumProperties(sigma_t, sigma_s, Le)
+
+
+class MitsubaTracker(Tracker):
+    """Any other medium (Mitsuba's ``heterogeneous``), through Mitsuba's interface alone:
+    one segment over the whole ray with the global majorant (a 1-cell grid whose value
+    equals it inside and outside; read back once per render, and checked,
+    :func:`checked_majorant`) and ``get_scattering_coefficients``. Chromatic as it
+    declares."""
+
+    def __init__(self, medium: mi.Medium, extent: float = np.inf, bbox=None):
+        super().__init__(medium)
+        self.is_chromatic = medium.has_spectral_extinction()
+        value = checked_majorant(medium, bbox)
+        self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
+                                 mi.ScalarTransform4f(), value)
+        self.march_grid = self.grid
+        #: ``extent``: the longest stretch a ray can travel through it
+        self.hot = value * extent > REFINE_OPTICAL_DEPTH
+
+    def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
+        _, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
+        return mi.Spectrum(sigma_t)
+
+    def properties(self, mei: mi.MediumInteraction3f, active) -> MediumProperties:
+        sigma_s, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
+        return MediumProperties(mi.Spectrum(sigma_t), mi.Spectrum(sigma_s), mi.Spectrum(0.0))
+
+
+def tracker_for(medium: mi.Medium, extent: float = np.inf, bbox=None) -> Tracker:
+    """The adapter of ``medium`` (``extent``, ``bbox``: the scene's longest stretch and
+    box, for a Mitsuba medium's work budget and majorant check)."""
+    if getattr(medium, "PROVIDES_TRACKING", False):
+        return GridTracker(medium)
+    return MitsubaTracker(medium, extent, bbox)
 
 
 #: lanes (points x wavelengths) at which a Mitsuba medium's extinction is probed
@@ -189,18 +226,6 @@ def index_channel(spec, channel: mi.UInt32) -> mi.Float:
     for k in range(1, len(spec)):
         value = dr.select(channel == k, spec[k], value)
     return value
-
-
-def probe_wavelengths(width: int = 64):
-    """``width`` lanes of wavelengths spread over the whole visible range [MI_CIE_MIN,
-    MI_CIE_MAX] (spectral variants; None in RGB and mono ones): a spatially constant
-    quantity evaluated there shows whether, and how much, it varies with the wavelength
-    (``dr.zeros`` would put every lane at 0 nm)."""
-    if not mi.is_spectral:
-        return None
-    n = dr.size_v(mi.Spectrum)
-    lam = np.linspace(mi.MI_CIE_MIN, mi.MI_CIE_MAX, width * n).reshape(width, n)
-    return mi.Spectrum(*[mi.Float(lam[:, k]) for k in range(n)])
 
 
 def probe_interaction(width: int = 64) -> mi.MediumInteraction3f:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import MediumTracker, index_channel, medium_interaction
+from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.walk import MajorantSegments, count, walk
 
 VARIANT = mi.variant()
@@ -167,7 +167,7 @@ class RatioTracking(NullCollisionRule):
     def finish(self, t, state, t_out, entered):
         return state.T
 
-    def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
+    def transmittance(self, tracker: Tracker, ray: mi.Ray3f, t_max: mi.Float,
                       sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
         """Estimate ``exp(-int_0^t_max sigma_t)`` along ``ray``."""
         return walk(tracker, ray, t_max, sampler, self, active)
@@ -207,7 +207,7 @@ TRANSMITTANCE_ESTIMATORS = {"ratio": RatioTracking(), "residual": ResidualRatioT
                             "track_length": TrackLength()}
 
 
-def transmittance(tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
+def transmittance(tracker: Tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
                   method: str, active: mi.Bool) -> mi.Spectrum:
     """Transmittance over ``[0, t_max]`` estimated by the named estimator."""
     return TRANSMITTANCE_ESTIMATORS[method].transmittance(tracker, ray, t_max, sampler, active)
@@ -257,11 +257,13 @@ class DeltaTracking(NullCollisionRule):
                           mi.Spectrum(self.r_u), mi.Spectrum(0.0), mi.Bool(False))
 
     def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
-        sigma_t, sigma_s, Le = tracker.coefficients(medium_interaction(ray, t), collide)
+        props = tracker.properties(medium_interaction(ray, t), collide)
+        sigma_t, sigma_s = props.sigma_t, props.sigma_s
         sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
         beta = state.beta
         if self.emission:
-            state.L_e = dr.select(collide, state.L_e + beta * (sigma_t - sigma_s) * Le / sigma_maj,
+            state.L_e = dr.select(collide,
+                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / sigma_maj,
                                   state.L_e)
         u = sampler.next_1d(collide)
         if self.chromatic:

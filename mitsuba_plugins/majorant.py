@@ -1,14 +1,12 @@
-"""Majorant grid and its DDA traversal (docs/method.md section 8).
+"""Majorants of a medium: per-cell bounds of its extinction, built from its data, and
+their derivation into what tracking walks (docs/method.md section 8).
 
-A :class:`MajorantGrid` covers a box, the unit cube of a grid's local frame, with
-``R_x x R_y x R_z`` cells and stores for each cell an upper bound of the extinction
-``sigma_t`` anywhere in it. :meth:`MajorantGrid.start` and :meth:`MajorantGrid.next`
-walk a ray through it (a 3D DDA, Amanatides and Woo 1987; pbrt-v4's
-``DDAMajorantIterator`` is the same idea) and return successive segments
-``[t0, t1)`` with their majorant ``sigma_maj``. The segments tile the requested
-``[t_start, t_stop]`` exactly, in order: where the ray runs outside the box (the grid is
-clamped there, as Mitsuba's ``gridvolume`` does) the segment carries the global
-majorant ``outside``.
+The builders (:class:`MajorantBuilder`, :class:`ProductMajorantBuilder`) take a grid's
+values slab by slab; :func:`derive` turns bounds into a medium's
+:class:`Majorants` (global majorant, :class:`~mitsuba_plugins.dda.MajorantGrid` with
+its DDA, the finer grid marches step by, whether hot segments are refined), choosing the
+resolution per grid and refusing extinctions the kernels cannot hold. Any medium that
+offers tracking (``mitsuba_plugins.contract.TrackedMedium``) can reuse it.
 
 A cell's bound is the maximum of the voxels whose values a lookup anywhere in the
 cell can reach: trilinear interpolation at local coordinate ``x`` on an axis of
@@ -20,15 +18,34 @@ voxels, so it cannot exceed their maximum (up to one rounding, covered by
 ``ROUNDING``). The same argument bounds it from below by the minimum of those voxels:
 the per-cell *minorant* is the control extinction of residual ratio tracking (Novak et
 al. 2014). The integrator decides what happens at a tentative collision; this module
-only bounds and traverses.
+only bounds.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_plugins import contract
+from mitsuba_plugins.dda import MajorantGrid
+from mitsuba_plugins.params import PluginParameterError
+
 VARIANT = mi.variant()
+
+#: largest extinction (per world unit) a medium may reach, as the float32 product the
+#: kernels use (value x scale x multiplier, rounded up for the majorant). Above it the
+#: optical depth of a flight (extinction x distance) could overflow float32 to inf and
+#: the spectral weights exp(tau_min - tau) to NaN: 1e30 leaves room for distances up
+#: to 3e8 units. Any medium this dense is opaque at float32 resolution anyway.
+MAX_EXTINCTION = 1e30
+#: largest optical depth of one voxel (extinction x its shortest world edge). Tracking
+#: cuts hot majorant cells into pieces whose number grows as the square root of this
+#: (mitsuba_plugins.walk.refined_piece): at 1e8 the worst crossing stays
+#: within tracking's work budget, so the answer is the unbiased one, not its roulette
+#: fallback's. Transmittance through such a voxel is exp(-1e8) already.
+MAX_VOXEL_OPTICAL_DEPTH = 1e8
 
 #: default cells per axis
 DEFAULT_RESOLUTION = 16
@@ -209,153 +226,92 @@ def resolution_for(shape, cells: int) -> tuple:
     return (min(cells, x), min(cells, y), min(cells, z))
 
 
-def ray_box(o: mi.Point3f, d: mi.Vector3f, lo, hi):
-    """``(hit, t_near, t_far)``: where the ray ``o + t d`` is inside the axis-aligned box
-    ``[lo, hi]`` (slab test; the arithmetic of Mitsuba's ``BoundingBox3f.ray_intersect``).
-
-    Not ``mi.BoundingBox3f(...).ray_intersect(ray)``: Mitsuba binds that class once per
-    Dr.Jit backend, for the variant imported first, so after a switch from
-    ``llvm_ad_rgb`` to ``llvm_ad_spectral`` it refuses the spectral variant's ``Ray3f``."""
-    lo, hi = mi.Point3f(lo), mi.Point3f(hi)
-    d_rcp = dr.rcp(d)
-    t1 = (lo - o) * d_rcp
-    t2 = (hi - o) * d_rcp
-    t_near = dr.max(dr.minimum(t1, t2))
-    t_far = dr.min(dr.maximum(t1, t2))
-    hit = dr.all((d != 0) | ((o > lo) & (o < hi))) & (t_far >= t_near)
-    return hit, t_near, t_far
+@dataclasses.dataclass
+class Majorants:
+    """What tracking needs from a medium's bounds (see :func:`derive`)."""
+    global_majorant: object          # opaque mi.Float: the bound everywhere
+    grid: MajorantGrid               # per-cell bounds and minorants, with the DDA
+    march_grid: MajorantGrid         # the finest bounds, for majorant-mode marches
+    refinement: tuple | None         # (voxels per local unit, trilinear) if cells can be hot
 
 
-class DDAState:
-    """Loop state of one ray's walk through a :class:`MajorantGrid`."""
-    DRJIT_STRUCT = {
-        "t": mi.Float,        # start of the next segment
-        "t_end": mi.Float,    # end of the requested interval (t_stop)
-        "t_in": mi.Float,     # where the ray enters the box (clamped to the interval)
-        "t_out": mi.Float,    # where it leaves the box (clamped to the interval)
-        "cell": mi.Vector3i,  # current cell while inside the box
-        "o": mi.Point3f,      # ray origin in the grid's local frame
-        "d": mi.Vector3f,     # ray direction in the local frame (not normalised: same t)
-    }
-
-    def __init__(self, t=None, t_end=None, t_in=None, t_out=None, cell=None, o=None, d=None):
-        self.t, self.t_end, self.t_in, self.t_out = t, t_end, t_in, t_out
-        self.cell, self.o, self.d = cell, o, d
+def world_linear(to_local) -> np.ndarray:
+    """The 3x3 linear part of a grid's local -> world map (columns: the world images of
+    the local unit axes)."""
+    return np.array(to_local.inverse().matrix, dtype=np.float64)[:3, :3]
 
 
-class MajorantGrid:
-    """Cell bounds of extinction over the unit cube of a local frame, with DDA.
+def derive(values: np.ndarray, lows: np.ndarray, grid_max: float, scale: float, to_local,
+           auto: bool, voxels=None, shape=None, plugin: str = "medium",
+           source: str = "the medium") -> Majorants:
+    """A medium's :class:`Majorants` from cell bounds ``values`` / ``lows`` and the
+    largest value ``grid_max`` (all before ``scale``), over the unit cube of
+    ``to_local``'s frame.
 
-    ``values``: ``(Rz, Ry, Rx)`` bounds; ``to_local``: world -> local transform;
-    ``outside``: the bound used where a ray is outside the box (the global majorant);
-    ``minorants``: optional ``(Rz, Ry, Rx)`` lower bounds (0 where not given, and
-    outside the box). Arrays are evaluated and opaque, so a changed grid never
-    recompiles a kernel.
-    """
+    ``auto``: coarsen the cells to :func:`auto_resolution`'s choice (the march grid keeps
+    the fine bounds). ``voxels``: ``(voxels per local unit, trilinear)`` of a voxel grid
+    (None: lookups are not ours, nothing to refine); ``shape``: its ``(Z, Y, X, ...)``,
+    for the voxel optical-depth check. Extinctions that float32 cannot hold are refused
+    naming ``plugin``'s parameter ``scale`` and ``source``."""
+    scale32 = np.float32(scale)
+    fine = None   # the bounds as built, when tracking gets coarser ones
+    if auto and to_local is not None and values.size > 1:
+        coarse = auto_resolution(values, float(scale32),
+                                 np.linalg.norm(world_linear(to_local), axis=0))
+        if coarse != values.shape:
+            fine = values
+            values, lows = pool(values, coarse), pool(lows, coarse, np.min)
+    with np.errstate(over="ignore", invalid="ignore"):
+        majorant, cells = scale32 * np.float32(grid_max), values * scale32
+    _check_extinction(scale, float(grid_max), majorant, cells, plugin, source)
+    if shape is not None:
+        _check_voxel_optical_depth(float(majorant), to_local, shape, plugin, source)
+    hot = voxels is not None and _has_hot_cells(cells, to_local)
+    grid = MajorantGrid(cells, to_local, float(majorant), minorants=lows * scale32)
+    return Majorants(
+        global_majorant=dr.opaque(mi.Float, float(majorant)), grid=grid,
+        # the automatic coarsening weighs lookups against tracking's DDA steps; a march
+        # takes step_optical_depth / sigma_maj steps per unit length: the finest bounds
+        march_grid=grid if fine is None else MajorantGrid(fine * scale32, to_local,
+                                                          float(majorant)),
+        refinement=voxels if hot else None)
 
-    def __init__(self, values: np.ndarray, to_local, outside: float,
-                 minorants: np.ndarray | None = None):
-        values = np.asarray(values, dtype=np.float32)
-        rz, ry, rx = values.shape
-        self.resolution = (rx, ry, rz)
-        self.host_values = values
-        self.values = mi.Float(values.ravel())
-        lows = np.zeros_like(values) if minorants is None else \
-            np.minimum(np.asarray(minorants, dtype=np.float32).reshape(values.shape), values)
-        self.minorants = mi.Float(lows.ravel())
-        self.outside = dr.opaque(mi.Float, float(outside))
-        self.to_local = mi.Transform4f(to_local)
-        dr.make_opaque(self.values, self.minorants, self.to_local)
 
-    # -- queries -----------------------------------------------------------------
-    def empty_fraction(self) -> float:
-        """Fraction of the box volume whose bound is exactly 0."""
-        return float(np.mean(self.host_values == 0))
+def _has_hot_cells(cells: np.ndarray, to_local) -> bool:
+    """Can a ray cross a majorant cell with optical depth (bound x length) above
+    contract.REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
+    diagonal."""
+    if not cells.size:
+        return False
+    linear = world_linear(to_local)
+    rz, ry, rx = cells.shape
+    diagonals = [linear @ (np.array([sx, sy, 1.0]) / (rx, ry, rz))
+                 for sx in (-1, 1) for sy in (-1, 1)]
+    longest = max(float(np.linalg.norm(d)) for d in diagonals)
+    return float(np.max(cells)) * longest > contract.REFINE_OPTICAL_DEPTH
 
-    def _index(self, cell: mi.Vector3i) -> mi.UInt32:
-        rx, ry, _ = self.resolution
-        return mi.UInt32((cell.z * ry + cell.y) * rx + cell.x)
 
-    def _clamp_cell(self, cell: mi.Vector3i) -> mi.Vector3i:
-        rx, ry, rz = self.resolution
-        return dr.clip(cell, mi.Vector3i(0), mi.Vector3i(rx - 1, ry - 1, rz - 1))
+def _check_voxel_optical_depth(majorant: float, to_local, shape, plugin, source) -> None:
+    z, y, x = shape[:3]
+    edge = float(np.min(np.linalg.norm(world_linear(to_local), axis=0) / np.array([x, y, z])))
+    depth = majorant * edge
+    if depth <= MAX_VOXEL_OPTICAL_DEPTH:
+        return
+    raise PluginParameterError(
+        f"{plugin}: the densest voxel of {source} has optical depth {depth:.3g} (extinction "
+        f"{majorant:.3g} x shortest voxel edge {edge:.3g}); allowed: at most "
+        f"{MAX_VOXEL_OPTICAL_DEPTH:g}: lower parameter 'scale' (any voxel of optical depth "
+        "above ~50 is opaque)")
 
-    # -- traversal ---------------------------------------------------------------
-    def start(self, ray: mi.Ray3f, t_start: mi.Float, t_stop: mi.Float, active=True) -> DDAState:
-        """State for walking ``ray`` over ``[t_start, t_stop]`` (``ray.d`` need not be unit)."""
-        o = self.to_local @ ray.o
-        d = self.to_local @ ray.d
-        hit, t_in, t_out = ray_box(o, d, 0.0, 1.0)
-        t_in = dr.clip(t_in, t_start, t_stop)
-        t_out = dr.clip(t_out, t_start, t_stop)
-        hit &= active & (t_in < t_out)
-        t_in = dr.select(hit, t_in, t_stop)
-        t_out = dr.select(hit, t_out, t_stop)
-        # The cell holding the entry point; a point on a face sits in the cell the
-        # ray goes on into, so take the cell of a point just inside.
-        res = mi.Vector3f(self.resolution)
-        t_mid = dr.select(hit, dr.lerp(t_in, t_out, 1e-4), t_in)
-        cell = self._clamp_cell(mi.Vector3i(dr.floor((o + d * t_mid) * res)))
-        return DDAState(mi.Float(t_start), mi.Float(t_stop), t_in, t_out, cell, o, d)
 
-    def next(self, state: DDAState, active=True):
-        """The next segment: returns ``(t0, t1, sigma_maj, state)``.
-
-        Call while ``state.t < state.t_end``. Segments have ``t1 >= t0`` and the next
-        one starts where this one ends; inside the box each is one cell.
-        """
-        t0, t1, sigma_maj, _, state = self.next_bounds(state, active, minorant=False)
-        return t0, t1, sigma_maj, state
-
-    def next_bounds(self, state: DDAState, active=True, minorant: bool = True):
-        """As :meth:`next`, with the segment's minorant: ``(t0, t1, sigma_maj,
-        sigma_min, state)`` (``sigma_min`` is 0 outside the box or when not asked for)."""
-        t0 = mi.Float(state.t)
-        before = t0 < state.t_in
-        inside = ~before & (t0 < state.t_out)
-        res = mi.Vector3f(self.resolution)
-
-        # Parametric distance to the cell's exit face on each axis (inf if parallel).
-        positive = state.d > 0
-        face = (mi.Vector3f(state.cell) + dr.select(positive, 1.0, 0.0)) / res
-        t_face = dr.select(dr.abs(state.d) > 0, (face - state.o) / state.d, dr.inf)
-        t_cross = dr.min(t_face)
-        t1_inside = dr.maximum(dr.minimum(t_cross, state.t_out), t0)
-
-        index = self._index(state.cell)
-        value = dr.gather(mi.Float, self.values, index, active & inside)
-        t1 = dr.select(before, state.t_in, dr.select(inside, t1_inside, state.t_end))
-        sigma_maj = dr.select(inside, value, self.outside)
-        sigma_min = mi.Float(0.0)
-        if minorant:
-            sigma_min = dr.gather(mi.Float, self.minorants, index, active & inside)
-
-        # Step every axis whose face is crossed at t_cross (corners step several).
-        crossing = inside & (t_cross < state.t_out)
-        step = dr.select(positive, mi.Vector3i(1), mi.Vector3i(-1))
-        cell = mi.Vector3i(state.cell)
-        cell += dr.select(crossing & (t_face == t_cross), step, mi.Vector3i(0))
-        rx, ry, rz = self.resolution
-        left = dr.any((cell < 0) | (cell >= mi.Vector3i(rx, ry, rz)))
-        # Leaving the cell range means leaving the box, whatever t_out rounded to.
-        t1 = dr.select(inside & left, state.t_out, t1)
-        new = DDAState(dr.select(active, t1, state.t), state.t_end, state.t_in,
-                       state.t_out, dr.select(active, self._clamp_cell(cell), state.cell),
-                       state.o, state.d)
-        return t0, t1, sigma_maj, sigma_min, new
-
-    def segments(self, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None = None):
-        """All segments as numpy arrays ``(t0, t1, sigma_maj, valid)`` of shape
-        ``(n_rays, n_segments)``; for tests and inspection, not for render kernels."""
-        rx, ry, rz = self.resolution
-        limit = max_segments or (rx + ry + rz + 3)
-        state = self.start(ray, mi.Float(t_start), mi.Float(t_stop))
-        n = dr.width(ray)
-        out = []
-        for _ in range(limit):
-            active = state.t < state.t_end
-            t0, t1, sigma_maj, state = self.next(state, active)
-            dr.eval(t0, t1, sigma_maj, active, state.t, state.cell)
-            out.append(tuple(np.broadcast_to(np.asarray(x), (n,))
-                             for x in (t0, t1, sigma_maj, active)))
-        return tuple(np.stack(x, axis=1) for x in zip(*out))
+def _check_extinction(scale: float, grid_max: float, majorant, cells, plugin, source) -> None:
+    """The extinction as the kernels compute it, in float32: finite and at most
+    :data:`MAX_EXTINCTION`, the majorants included (checking the doubles would let
+    scale = 1e39, inf in float32, through)."""
+    top = max(float(majorant), float(np.max(cells)) if cells.size else 0.0)
+    if np.isfinite(np.float32(scale)) and np.isfinite(top) and top <= MAX_EXTINCTION:
+        return
+    raise PluginParameterError(
+        f"{plugin}: extinction too large: parameter 'scale' = {scale:g} times the largest "
+        f"density of {source} (times sigma_t), {grid_max:g}, gives a majorant of {top:g} "
+        f"in float32; allowed: a product of at most {MAX_EXTINCTION:g} per unit length")

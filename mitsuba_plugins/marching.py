@@ -16,7 +16,7 @@ Cells (:class:`Marcher`):
 
 * ``fixed``: boundaries at ``t_in + (u + k) dt`` for a jitter ``u`` drawn per march, so
   the first cell is ``u dt`` long and the grid of cells is different for each ray.
-* ``majorant``: the majorant grid's segments (:class:`~mitsuba_plugins.majorant.MajorantGrid`)
+* ``majorant``: the majorant grid's segments (:class:`~mitsuba_plugins.dda.MajorantGrid`)
   are cut into cells of ``dt = min(step_size, step_optical_depth / sigma_maj)``, so a
   cell's optical depth never exceeds ``step_optical_depth``; a segment whose majorant is
   0 (empty space) is one cell.
@@ -28,9 +28,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import MediumTracker, index_channel, medium_interaction
+from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, spectral_flight_weight
-from mitsuba_plugins.majorant import DDAState
+from mitsuba_plugins.dda import DDAState
 from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
@@ -200,7 +200,7 @@ class Marcher:
         self.cells = FixedCells(self.step_size) if mode == "fixed" else \
             MajorantCells(self.step_size, self.step_optical_depth)
 
-    def transmittance(self, tracker: MediumTracker, ray: mi.Ray3f, t_max: mi.Float,
+    def transmittance(self, tracker: Tracker, ray: mi.Ray3f, t_max: mi.Float,
                       sampler: mi.Sampler, active: mi.Bool) -> mi.Spectrum:
         """Marched transmittance ``exp(-sum sigma_t(mid) l)`` over ``[0, t_max]``: exact
         for the piecewise-constant medium; one random number (the jitter)."""
@@ -289,8 +289,8 @@ class MarchedFlight(MarchRule):
 
     def step(self, tracker, ray, sampler, cell, t0, state, active):
         t1 = cell.t_end
-        sigma_t, sigma_s, Le = tracker.coefficients(
-            medium_interaction(ray, 0.5 * (t0 + t1)), active)
+        props = tracker.properties(medium_interaction(ray, 0.5 * (t0 + t1)), active)
+        sigma_t, sigma_s, Le = props.sigma_t, props.sigma_s, props.Le
         sigma_h = index_channel(sigma_t, self.hero) if self.chromatic else sigma_t[0]
         cell_tau = sigma_h * (t1 - t0)
         collide = active & (state.tau_left < cell_tau)
@@ -361,8 +361,8 @@ class MarchedSingle(MarchRule):
     def step(self, tracker, ray, sampler, cell, t0, state, active):
         t1 = cell.t_end
         length = t1 - t0
-        sigma_t, sigma_s, Le = tracker.coefficients(
-            medium_interaction(ray, 0.5 * (t0 + t1)), active)
+        props = tracker.properties(medium_interaction(ray, 0.5 * (t0 + t1)), active)
+        sigma_t, sigma_s, Le = props.sigma_t, props.sigma_s, props.Le
         T0 = dr.exp(-state.tau)
 
         # one emitter sample from a point in the cell

@@ -76,6 +76,59 @@ class Params:
             self._fail(name, value, "true | false")
         return value
 
+    def color(self, name: str, default: float, what: str = "a float or rgb") -> list:
+        """A non-negative float or rgb parameter as three floats."""
+        import mitsuba as mi
+        value = self.props[name] if self.has(name) else default
+        if isinstance(value, mi.Object):
+            raise PluginParameterError(
+                f"{self.plugin}: parameter '{name}' must be {what} (got a "
+                f"{value.class_name()})")
+        try:
+            values = floats(value)
+        except (TypeError, ValueError):
+            raise PluginParameterError(
+                f"{self.plugin}: parameter '{name}' = {value!r} is invalid; allowed: a float "
+                "or rgb >= 0") from None
+        values = values * 3 if len(values) == 1 else values
+        if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
+            raise PluginParameterError(
+                f"{self.plugin}: parameter '{name}' = {values} is invalid; allowed: finite "
+                "values >= 0")
+        return values
+
+    def volume(self, name: str, default, hi: float | None = None, illuminant: bool = False):
+        """A float, rgb or nested volume parameter as a ``mi.Volume`` (a constant
+        range-checked here; check a nested volume's values with
+        :func:`mitsuba_plugins.stores.check_volume_range`).
+
+        In spectral variants a constant is upsampled by Mitsuba's rules: ``illuminant``
+        (emission) as an emitter's radiance is (``d65``: an RGB white renders white, as an
+        area light of the same value does), otherwise as a reflectance (``rgb``: values in
+        [0, 1], as ``homogeneous`` requires of its ``sigma_t``)."""
+        import mitsuba as mi
+        value = self.props[name] if self.has(name) else default
+        if isinstance(value, mi.Volume):
+            return value
+        values = self.color(name, default, "a float, rgb or volume")
+        if hi is not None and max(values) > hi:
+            raise PluginParameterError(
+                f"{self.plugin}: parameter '{name}' = {values} is invalid; allowed: values "
+                f"in [0, {hi:g}]")
+        if illuminant and mi.is_spectral:
+            spec = {"type": "d65", "color": values}
+        elif len(set(values)) == 1:
+            spec = values[0]
+        else:
+            if mi.is_spectral and max(values) > 1:
+                raise PluginParameterError(
+                    f"{self.plugin}: parameter '{name}' = {values} is invalid in the spectral "
+                    f"variant '{mi.variant()}'; allowed: rgb values in [0, 1] (upsampled as a "
+                    "reflectance, as for Mitsuba's media): divide them by their maximum and "
+                    "multiply 'scale' by it")
+            spec = {"type": "rgb", "value": values}
+        return mi.load_dict({"type": "constvolume", "value": spec})
+
     def max_depth(self, default: int = -1) -> int:
         """Mitsuba's ``max_depth``: -1 = unbounded, else the longest path depth (>= 0)."""
         return self.int("max_depth", default, lo=-1)
@@ -97,3 +150,13 @@ def _range_text(lo, hi, kind):
 def depth_limit(max_depth: int) -> int:
     """``max_depth`` as the unsigned bound Mitsuba compares against (-1 -> 2^32 - 1)."""
     return 0xFFFFFFFF if max_depth < 0 else max_depth
+
+
+def floats(value) -> list:
+    """Python floats of a scalar, Color or Dr.Jit array of width 1."""
+    import numpy as np
+    if isinstance(value, (int, float)):
+        return [float(value)]
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    return [float(v) for v in arr]
+

@@ -23,8 +23,8 @@ PLUGINS = {
     "volpath_raymarch": "mitsuba_plugins.integrators.volpath_raymarch",
 }
 #: shared modules whose classes bind variant types at import; re-imported first
-SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.majorant",
-                   "mitsuba_plugins.contract", "mitsuba_plugins.walk",
+SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.dda",
+                   "mitsuba_plugins.contract", "mitsuba_plugins.majorant", "mitsuba_plugins.walk",
                    "mitsuba_plugins.estimators", "mitsuba_plugins.marching",
                    "mitsuba_plugins.scene_media", "mitsuba_plugins.paths",
                    "mitsuba_plugins.volumes")

@@ -6,8 +6,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.contract import (MediumTracker, diagonal, medium_interaction,
-                                      probe_interaction)
+from mitsuba_plugins.contract import (diagonal, medium_interaction, probe_interaction,
+                                      tracker_for)
 from mitsuba_plugins.estimators import homogeneous_transmittance
 from mitsuba_plugins.walk import count
 
@@ -52,7 +52,7 @@ class SceneMedia:
         self.scene_extent = diagonal(scene.bbox())
         self.any = bool(media)
         homogeneous = [m for m in media if m.is_homogeneous()]
-        self.trackers = {id(m): MediumTracker(m, self.scene_extent, scene.bbox()) for m in media
+        self.trackers = {id(m): tracker_for(m, self.scene_extent, scene.bbox()) for m in media
                          if not m.is_homogeneous()}
         self.homogeneous = bool(homogeneous)
         self.heterogeneous = bool(self.trackers)

@@ -35,6 +35,18 @@ LUMINANCE = np.array([0.212671, 0.715160, 0.072169], np.float32)
 MODEL_CHANNELS = 4
 
 
+def probe_wavelengths(width: int = 64):
+    """``width`` lanes of wavelengths spread over the whole visible range [MI_CIE_MIN,
+    MI_CIE_MAX] (spectral variants; None in RGB and mono ones): a spatially constant
+    quantity evaluated there shows whether, and how much, it varies with the wavelength
+    (``dr.zeros`` would put every lane at 0 nm)."""
+    if not mi.is_spectral:
+        return None
+    n = dr.size_v(mi.Spectrum)
+    lam = np.linspace(mi.MI_CIE_MIN, mi.MI_CIE_MAX, width * n).reshape(width, n)
+    return mi.Spectrum(*[mi.Float(lam[:, k]) for k in range(n)])
+
+
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """``(..., 3)`` -> ``(..., 1)`` luminance, float32."""
     return (np.asarray(rgb, np.float32) @ LUMINANCE)[..., None].astype(np.float32)

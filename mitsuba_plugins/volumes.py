@@ -14,7 +14,7 @@ from typing import Protocol
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import MediumTracker, medium_interaction
+from mitsuba_plugins.contract import Tracker, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
@@ -56,7 +56,7 @@ class VolumeStrategy(Protocol):
                            active: mi.Bool) -> FreeFlight:
         """``flight`` updated on the ``active`` lanes (all in homogeneous media)."""
 
-    def heterogeneous_flight(self, ctx: VolumeContext, tracker: MediumTracker, ray: mi.Ray3f,
+    def heterogeneous_flight(self, ctx: VolumeContext, tracker: Tracker, ray: mi.Ray3f,
                              t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
                              nee: mi.Bool, active: mi.Bool) -> FreeFlight:
         """The flight through ``tracker``'s medium on the ``active`` lanes."""

@@ -37,7 +37,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins import contract
-from mitsuba_plugins.majorant import DDAState
+from mitsuba_plugins.dda import DDAState
 
 VARIANT = mi.variant()
 
@@ -49,7 +49,7 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 #: Loop iterations one walk may take before every further one is survived only with
 #: probability WORK_SURVIVAL (Russian roulette, unbiased: the weight of a survivor is
 #: divided by it). Traced only for a medium that can have hot segments
-#: (:attr:`MediumTracker.hot`): elsewhere every segment holds at most ~256 tentative
+#: (:attr:`mitsuba_plugins.contract.Tracker.hot`): elsewhere every segment holds at most ~256 tentative
 #: collisions and a crossing visits at most Rx + Ry + Rz + 3 segments, so the work is
 #: bounded already, and the budget's counter and masked draw would cost 4-6% there
 #: (measured on smoke, sparse and chromatic). Media that grid_medium accepts (voxel

@@ -8,7 +8,8 @@ import pytest
 
 from helpers import N_RAYS, check_segment_bounds, grid, random_rays
 from mitsuba_plugins import gridio
-from mitsuba_plugins.majorant import (MajorantBuilder, MajorantGrid, auto_resolution,
+from mitsuba_plugins.dda import MajorantGrid
+from mitsuba_plugins.majorant import (MajorantBuilder, auto_resolution,
                                       build_majorants, pool, voxel_ranges)
 
 

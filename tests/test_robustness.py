@@ -196,7 +196,7 @@ def _tracker(tmp_path, interpolation, value=1e8):
     path = tmp_path / "v.npy"
     np.save(path, data)
     medium = mi.load_dict(grid(filename=str(path), scale=1.0, interpolation=interpolation))
-    return contract.MediumTracker(medium), medium
+    return contract.tracker_for(medium), medium
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
@@ -241,10 +241,10 @@ def test_only_hot_media_carry_refinement(monkeypatch):
     hold neither refinement nor work budget (both cost 4-6% when traced)."""
     medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, None)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is None and not contract.MediumTracker(medium).hot
+    assert medium.refinement is None and not contract.tracker_for(medium).hot
     medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, 0.5)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is not None and contract.MediumTracker(medium).hot
+    assert medium.refinement is not None and contract.tracker_for(medium).hot
 
 
 @pytest.mark.parametrize("method", ["track_length", "ratio", "residual"])

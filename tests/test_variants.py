@@ -234,7 +234,7 @@ def test_a_mitsuba_majorant_below_the_extinction_is_replaced():
     upsampled spectrum, 0.84 for (1, 0.2, 1), below the spectrum's 0.9998 in spectral
     variants: tracking with it would be biased. Our trackers check it at sampled points
     and wavelengths and use the largest extinction seen instead; in RGB it stays."""
-    from mitsuba_plugins.contract import MediumTracker, probe_interaction
+    from mitsuba_plugins.contract import probe_interaction, tracker_for
     def medium():
         return mi.load_dict({"type": "heterogeneous", "scale": 3.0, "sigma_t": {
             "type": "constvolume", "value": {"type": "rgb", "value": [1.0, 0.2, 1.0]}}})
@@ -243,9 +243,9 @@ def test_a_mitsuba_majorant_below_the_extinction_is_replaced():
     reported = float(np.max(np.array(m.get_majorant(probe_interaction(1)))))
     _, _, sigma_t = m.get_scattering_coefficients(probe_interaction(1024))
     assert reported < 0.9 * float(np.max(np.array(sigma_t)))       # Mitsuba's is too small
-    bound = float(MediumTracker(m).grid.outside[0])
+    bound = float(tracker_for(m).grid.outside[0])
     assert bound >= float(np.max(np.array(sigma_t)))
     mi.set_variant(VARIANT)
     m = medium()
-    assert float(MediumTracker(m).grid.outside[0]) == \
+    assert float(tracker_for(m).grid.outside[0]) == \
         float(np.max(np.array(m.get_majorant(probe_interaction(1)))))

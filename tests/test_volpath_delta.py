@@ -208,7 +208,7 @@ def random_grid(tmp_path_factory):
 
 
 def transmittance_samples(medium, method, n=1 << 16, seed=0):
-    tracker = contract.MediumTracker(medium)
+    tracker = contract.tracker_for(medium)
     ray, length = segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)

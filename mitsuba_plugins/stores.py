@@ -1,0 +1,343 @@
+"""Where a grid medium's values live: one store per kind, with one interface.
+
+* :class:`DenseStore`: one 3D texture of the loaded box (``storage = dense``);
+* :class:`SparseStore`: 8^3-voxel bricks in a pool (:mod:`mitsuba_plugins.sparse`);
+* :class:`VolumeStore`: a nested Mitsuba volume (``sigma_t`` without ``filename``).
+
+A store answers three things: the grid's value at a point as a spectrum of the variant
+(:meth:`eval`; for a file grid before ``scale`` and the multiplier), the bounds a majorant
+is derived from (:meth:`bounds`, fed to :func:`mitsuba_plugins.majorant.derive`) and what
+it exposes to ``mi.traverse`` (:meth:`traverse`, :meth:`changed`). :func:`load` streams a
+grid file into a dense or sparse store, checking every value; nothing is kept if any
+check fails.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_plugins import bricks, gridio, placement
+from mitsuba_plugins.majorant import (MARGIN, ROUNDING, MajorantBuilder, ProductMajorantBuilder,
+                                      resolution_for, voxel_ranges)
+from mitsuba_plugins.params import PluginParameterError
+from mitsuba_plugins.spectra import MODEL_CHANNELS, GridValues, model_range, probe_wavelengths
+
+#: elements moved to device memory per scatter while loading (bounds the extra memory)
+UPLOAD_CHUNK = 1 << 18
+#: margin (local units) of majorant cells when a nested volume's transform is read
+#: back from its printed 6-digit matrix
+PARSED_TRANSFORM_MARGIN = 2e-3
+INTERPOLATIONS = {"trilinear": dr.FilterMode.Linear, "nearest": dr.FilterMode.Nearest}
+STORAGES = ("dense", "sparse", "auto")
+#: ``storage = auto`` keeps bricks when they take at most this fraction of the dense bytes
+AUTO_SPARSE_FRACTION = 0.5
+#: sparse grids up to this many voxels get voxel-exact majorants, as dense ones (built
+#: from a dense copy, at most 64 MiB): at 48^3 the brick bounds (6^3 cells) made
+#: volpath_delta 1.43x slower on scenes/sparse.xml than the dense grid's 16^3
+EXACT_MAJORANT_VOXELS = 256 ** 3
+#: relative slack on a constant volume's largest value read at sampled wavelengths
+PROBE_SLACK = 1e-3
+
+
+@dataclasses.dataclass
+class Bounds:
+    """Cell bounds of a store before ``scale``: ``values`` / ``lows`` ``(Rz, Ry, Rx)``,
+    the largest value ``grid_max``, over the unit cube of ``to_local``."""
+    values: np.ndarray
+    lows: np.ndarray
+    grid_max: float
+    to_local: object
+
+
+def new_builder(stored_shape, values: GridValues, multiplier, cells: int,
+                margin: float = MARGIN):
+    """An empty majorant builder for stored grid values of ``stored_shape``: gray bounds
+    weighted by the sigma_t multiplier, or, for upsampled RGB (spectral variants), the
+    product of the spectrum's and the scale's cell maxima."""
+    resolution = resolution_for(stored_shape, cells)
+    if values.upsampled:
+        return ProductMajorantBuilder(stored_shape, resolution, values.factors,
+                                      multiplier.upper, margin)
+    return MajorantBuilder(stored_shape, resolution, multiplier.weights(stored_shape[3]),
+                           margin)
+
+
+def _built(builder, to_local) -> Bounds:
+    return Bounds(builder.finish(), builder.finish_min(), float(np.float32(builder.max)),
+                  to_local)
+
+
+class DenseStore:
+    """The loaded box as one ``Texture3f`` (``data``: its tensor, exposed for editing
+    where it holds the file's own values)."""
+    kind = "dense"
+
+    def __init__(self, data: mi.TensorXf, values: GridValues, shape, to_local,
+                 interpolation: str, builder=None):
+        self.data, self.values, self.shape, self.to_local = data, values, shape, to_local
+        self.interpolation = interpolation
+        self.texture = mi.Texture3f(data, use_accel=True, migrate=True,
+                                    filter_mode=INTERPOLATIONS[interpolation],
+                                    wrap_mode=dr.WrapMode.Clamp)
+        self._loaded = builder      # bounds built while streaming, used once
+
+    def eval(self, p: mi.Point3f, wavelengths, active):
+        """The value at local point ``p`` as a spectrum."""
+        if self.values.upsampled and self.interpolation == "trilinear":
+            return self.values.blend(self.texture.eval_fetch(p, active),
+                                     cell_position(p, self.shape), wavelengths)
+        return self.values.spectrum(self.texture.eval(p, active), wavelengths)
+
+    def bounds(self, multiplier, cells: int, path) -> Bounds:
+        builder, self._loaded = self._loaded, None
+        if builder is None:
+            data = self.data.numpy()
+            if not self.values.converted:   # exposed through traverse: may have changed
+                gridio.check_values(path, "density", data)
+            builder = new_builder(data.shape, self.values, multiplier, cells).add_all(data)
+        return _built(builder, self.to_local)
+
+    def traverse(self, callback) -> None:
+        if not self.values.converted:
+            # differentiable: prbvolpath's gradient w.r.t. it equals the one with
+            # heterogeneous + gridvolume (tests/test_gradients.py). Not exposed where the
+            # stored values are not the file's (RGB upsampled in spectral variants,
+            # reduced to luminance in mono).
+            callback.put("data", self.data, mi.ParamFlags.Differentiable)
+
+    def changed(self) -> None:
+        if tuple(self.data.shape) != tuple(self.texture.tensor().shape):
+            raise PluginParameterError(
+                f"grid_medium: parameter 'data' changed shape from "
+                f"{tuple(self.texture.tensor().shape)} to {tuple(self.data.shape)}")
+        self.texture.set_tensor(self.data)
+
+    def describe(self) -> str:
+        return ""
+
+
+class SparseStore:
+    """Bricks (:class:`~mitsuba_plugins.sparse.SparseGrid`) and their extrema. The pool
+    is not exposed: changing voxel values would change which bricks exist."""
+    kind = "sparse"
+
+    def __init__(self, grid, values: GridValues, shape, to_local, interpolation: str,
+                 extrema):
+        self.grid, self.values, self.shape, self.to_local = grid, values, shape, to_local
+        self.interpolation, self.extrema = interpolation, extrema
+
+    def eval(self, p: mi.Point3f, wavelengths, active):
+        return grid_value(self.grid, self.values, p, self.interpolation == "trilinear",
+                          wavelengths, active)
+
+    def bounds(self, multiplier, cells: int, path) -> Bounds:
+        maxima, minima, index = self.extrema
+        if int(np.prod(self.shape[:3])) <= EXACT_MAJORANT_VOXELS:
+            c = self.grid.channels
+            pool = self.grid.pool.numpy().reshape(-1, *(bricks.SIDE,) * 3, c)
+            data = bricks.densify(index, pool, (*self.shape[:3], c))
+            return _built(new_builder(data.shape, self.values, multiplier, cells).add_all(data),
+                          self.to_local)
+        # Beyond: the bricks' extrema. At most one cell per brick; 16 by default as for
+        # dense storage (on the 1024^3 cloud of benchmarks/sparse_scale.py 64 cells per
+        # axis made volpath_delta 1.4x slower: more DDA steps, no fewer collisions).
+        rz, ry, rx = (min(cells, c) for c in index.shape)
+        z, y, x = self.shape[:3]
+        ranges = (voxel_ranges(z, rz), voxel_ranges(y, ry), voxel_ranges(x, rx))
+        weights, product = multiplier.weights(self.values.channels), self.values.upsampled
+        values, lows = bricks.cell_bounds(maxima, minima, index, self.shape, ranges, weights,
+                                          product=product)
+        grid_max = np.float32(np.prod(maxima.max(axis=0)) * multiplier.upper if product else
+                              (maxima * weights).max())
+        return Bounds((values * np.float32(1 + ROUNDING)).astype(np.float32),
+                      (lows * np.float32(1 - ROUNDING)).astype(np.float32), float(grid_max),
+                      self.to_local)
+
+    def traverse(self, callback) -> None:
+        pass
+
+    def changed(self) -> None:
+        pass
+
+    def describe(self) -> str:
+        return (f",\n  storage = sparse ({self.grid.stored - 1} bricks stored, "
+                f"{self.grid.nbytes / 2**20:.1f} MiB)")
+
+
+class VolumeStore:
+    """A nested Mitsuba volume: its own lookups; majorants from its data when it has a
+    grid (its transform read back from its printed matrix), else one cell."""
+    kind = "volume"
+
+    def __init__(self, volume: mi.Volume):
+        self.volume = volume
+
+    def eval(self, mei: mi.MediumInteraction3f, active):
+        return self.volume.eval(mei, active)
+
+    def bounds(self, multiplier, cells: int, path) -> Bounds:
+        data, to_local = placement.volume_grid(self.volume)
+        if data is None:
+            # A constant (or procedural) volume: one cell over its bounding box.
+            top = np.float32(volume_max(self.volume))
+            cell = np.full((1, 1, 1), top, np.float32)
+            return Bounds(cell, cell, float(top), placement.bbox_to_local(self.volume.bbox()))
+        # Mitsuba's volume holds RGB (evaluated as luminance in mono) or, in spectral
+        # variants, the upsampled model (4 channels) already
+        values = GridValues(3 if data.shape[3] == MODEL_CHANNELS else data.shape[3])
+        if values.gray_only:
+            data = values.convert(data)
+        builder = new_builder(data.shape, values, multiplier, cells, PARSED_TRANSFORM_MARGIN)
+        bounds = _built(builder.add_all(data), to_local)
+        # heterogeneous's majorant is scale * volume.max(); keep it bit for bit
+        bounds.grid_max = float(np.float32(self.volume.max()))
+        return bounds
+
+    def traverse(self, callback) -> None:
+        callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
+
+    def changed(self) -> None:
+        check_volume_range("grid_medium", "sigma_t", self.volume, 0.0, None)
+
+    def describe(self) -> str:
+        return ""
+
+
+# -- loading a grid file ------------------------------------------------------------------
+def load(header, storage: str, interpolation: str, to_local, multiplier, cells: int):
+    """A dense or sparse store of the grid file of ``header`` (``storage`` ``auto``:
+    sparse when that takes at most half the dense bytes), every value checked."""
+    values = GridValues(header.channels)
+    stored = (*header.shape[:3], values.channels)
+    if storage == "dense":
+        data, builder = _stream_dense(header, values, stored, multiplier, cells)
+        return DenseStore(data, values, header.shape, to_local, interpolation, builder)
+    from mitsuba_plugins.sparse import SparseGrid
+    builder = read_bricks(header, "density", values)
+    index = builder.index
+    maxima, minima = builder.extrema()
+    sparse_bytes = 4 * (index.size + builder.stored * bricks.SIDE ** 3 * stored[3])
+    if storage == "auto" and sparse_bytes > AUTO_SPARSE_FRACTION * 4 * np.prod(stored):
+        _, pool, _, _ = builder.finish()
+        data = bricks.densify(index, pool, stored)
+        del pool
+        majorants = new_builder(stored, values, multiplier, cells).add_all(data)
+        return DenseStore(mi.TensorXf(data), values, header.shape, to_local, interpolation,
+                          majorants)
+    grid = SparseGrid(stored, index, builder.pool_chunks(), builder.stored)
+    return SparseStore(grid, values, header.shape, to_local, interpolation,
+                       (maxima, minima, index))
+
+
+def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
+    """The file streamed slab by slab into one device tensor, and its majorant builder."""
+    builder = new_builder(stored, values, multiplier, cells)
+    flat = dr.zeros(mi.Float, int(np.prod(stored)))
+    slab_elems = int(np.prod(stored[1:]))
+    for z0, slab in gridio.iter_slabs(header):
+        gridio.check_values(header.path, "density", slab)
+        slab = values.convert(slab)
+        builder.add(z0, slab)
+        flat_slab = slab.reshape(-1)
+        for start in range(0, flat_slab.size, UPLOAD_CHUNK):
+            chunk = flat_slab[start:start + UPLOAD_CHUNK]
+            index = dr.arange(mi.UInt32, z0 * slab_elems + start,
+                              z0 * slab_elems + start + chunk.size)
+            dr.scatter(flat, mi.Float(chunk), index)
+            dr.eval(flat)
+    return mi.TensorXf(flat, shape=stored), builder
+
+
+def read_bricks(header, what: str, values: GridValues) -> bricks.BrickBuilder:
+    """A filled :class:`~mitsuba_plugins.bricks.BrickBuilder` of a grid file, every value
+    checked (finite, >= 0; ``what`` names the data in errors) and stored as ``values``
+    says (a brick's extrema are then those of the majorant factors of upsampled RGB).
+    For a .vdb the OpenVDB worker cuts the bricks and only stored ones cross the pipe (a
+    non-finite or negative value is non-zero, so its brick is among the checked ones)."""
+    builder = bricks.BrickBuilder((*header.shape[:3], values.channels),
+                                  bounds=values.factors if values.upsampled else None)
+    if header.vdb_grid is not None:
+        from mitsuba_plugins.vdb import iter_vdb_bricks
+        for row, cols, blocks in iter_vdb_bricks(header):
+            gridio.check_values(header.path, what, blocks)
+            builder.add_row(row, cols, values.convert(blocks))
+    else:
+        for z0, slab in gridio.iter_slabs(header):
+            gridio.check_values(header.path, what, slab)
+            builder.add(z0, values.convert(slab))
+    builder.finish_check()
+    return builder
+
+
+def load_emission_grid(path: str, name: str, to_world: mi.ScalarTransform4f):
+    """``(SparseGrid, GridValues, world -> local)`` of grid ``name`` of a .vdb (values
+    >= 0)."""
+    from mitsuba_plugins.sparse import SparseGrid
+    header = gridio.read_header(path, name)
+    values = GridValues(header.channels)
+    builder = read_bricks(header, f"emission_grid {name!r}", values)
+    grid = SparseGrid((*header.shape[:3], values.channels), builder.index,
+                      builder.pool_chunks(), builder.stored)
+    return grid, values, placement.vdb_to_world(header, to_world).inverse()
+
+
+# -- lookups ---------------------------------------------------------------------------------
+def grid_value(grid, values: GridValues, p: mi.Point3f, trilinear: bool, wavelengths,
+               active) -> mi.UnpolarizedSpectrum:
+    """The value of a sparse grid (:class:`~mitsuba_plugins.sparse.SparseGrid`) at local
+    point ``p`` as a spectrum (upsampled RGB: Mitsuba's blend, mitsuba_plugins.spectra)."""
+    if values.upsampled:
+        if trilinear:
+            corners, f = grid.fetch(p, active)
+            return values.blend(corners, f, wavelengths)
+        return values.spectrum(grid.eval(p, False, active), wavelengths)
+    value = grid.eval(p, trilinear, active)
+    return mi.UnpolarizedSpectrum(value) if grid.channels == 1 else value
+
+
+def cell_position(p: mi.Point3f, shape) -> mi.Vector3f:
+    """Where local ``p`` lies between the voxel centres that a trilinear texture lookup
+    blends (``gridvolume``'s weights for ``Texture3f.eval_fetch``)."""
+    z, y, x = shape[:3]
+    q = dr.fma(p, mi.Vector3f(x, y, z), -0.5)
+    return q - dr.floor(q)
+
+
+# -- nested volumes -------------------------------------------------------------------------
+def volume_max(volume: mi.Volume) -> float:
+    """A bound of a volume without grid data: Mitsuba's ``max()``, and in spectral
+    variants also the largest value over the visible range (Mitsuba's ``max()`` of an
+    upsampled rgb constant is not one: 0.84 for (1, 0.2, 1), whose spectrum reaches
+    0.9998), read at the centre of its box."""
+    vmax = float(volume.max())
+    if mi.is_spectral:
+        it = dr.zeros(mi.Interaction3f, 256)
+        it.wavelengths = probe_wavelengths(256)
+        it.p = mi.Point3f(volume.bbox().center())
+        probed = float(np.max(np.asarray(volume.eval(it))))
+        vmax = max(vmax, probed * (1 + PROBE_SLACK))
+    return vmax
+
+
+def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,
+                       hi: float | None) -> None:
+    """Every value of a volume parameter in [lo, hi]: a grid volume voxel by voxel (over
+    the wavelengths of its upsampled RGB in spectral variants), another by its bound."""
+    data, _ = placement.volume_grid(volume, need_transform=False)
+    if data is not None:
+        if mi.is_spectral and data.shape[3] == MODEL_CHANNELS:
+            # Mitsuba's upsampled RGB: check the values it takes over the wavelengths
+            gridio.check_values(f"<{name} volume>", name, data)   # finite
+            s_min, s_max = model_range(data)
+            data = np.stack([s_min * data[..., 3], s_max * data[..., 3]], axis=-1)
+        gridio.check_values(f"<{name} volume>", name, data, lo, hi)
+        return
+    vmax = volume_max(volume)
+    if not np.isfinite(vmax) or (hi is not None and vmax > hi):
+        raise PluginParameterError(
+            f"{plugin}: parameter '{name}' has maximum {vmax:g}; allowed: values in "
+            f"[{lo:g}, {'inf' if hi is None else f'{hi:g}'}]")
+
