@@ -15,7 +15,7 @@ default) and rr_depth 5.
    its own noise adds the same expected error to both sides, so ratios are conservative);
    efficiency = 1 / (mean relMSE x median time). The 90% interval of each ratio is a
    bootstrap over the runs (both sides resampled).
-2. ``profile``: per camera path, counted in our kernels (``walk.count_collisions``):
+2. ``profile``: per camera path, counted in our kernels (``instrument.counting``):
    ray intersections, shadow rays, medium and surface vertices, null collisions in
    flights and tentative collisions on shadow rays (each is one density lookup; real
    collisions add one each); time per sample of both integrators.
@@ -48,7 +48,7 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()
 mi.set_variant(VARIANT)
-from mitsuba_plugins import output, volumes, walk  # noqa: E402
+from mitsuba_plugins import instrument, output  # noqa: E402
 from mitsuba_plugins.majorant import DEFAULT_RESOLUTION  # noqa: E402
 from mitsuba_plugins.tools import stats  # noqa: E402
 
@@ -70,6 +70,8 @@ VARIANTS = {
                         "rr_max_survival": 0.95},
     "residual_rr0.999": {"type": "volpath_delta", "transmittance": "residual",
                          "rr_max_survival": 0.999},
+    "decomposition": {"type": "volpath_delta", "free_flight": "decomposition",   # issue 25
+                      "transmittance": "residual", "rr_max_survival": 0.99},
     "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
     "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }
@@ -292,12 +294,10 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
 
 
 def profile(scene, spp: int) -> dict:
-    counters = walk.count_collisions()
     res = scene.sensors()[0].film().size()
-    mi.render(scene, integrator=integrator(VARIANTS["old_default"]), spp=spp, seed=99)
-    c = np.array(counters, dtype=np.float64) / (spp * res[0] * res[1])
-    walk.count_collisions(False)
-    out = dict(zip(walk.COUNTER_SLOTS, map(float, c)))
+    with instrument.counting() as counts:
+        mi.render(scene, integrator=integrator(VARIANTS["old_default"]), spp=spp, seed=99)
+        out = {k: v / (spp * res[0] * res[1]) for k, v in counts.as_dict().items()}
     out["lookups"] = out["flight_null"] + out["shadow_tentative"]
     return out
 
@@ -321,11 +321,8 @@ def variance_split(scene, case: Case, spp: int, runs: int) -> dict:
     for depth in (1, 2, 4, 8):
         out[f"depth<={depth}"] = rel_variance(scene, {**base, "max_depth": depth}, spp, runs)
     for terms in (("nee",), ("emission",)):
-        volumes.TERMS = terms
-        try:
+        with instrument.only_terms(*terms):
             out[f"{terms[0]} only"] = rel_variance(scene, base, spp, runs)
-        finally:
-            volumes.TERMS = volumes.ALL_TERMS
     if case.shape != "homogeneous":
         for m in ("ratio", "residual"):
             out[f"transmittance={m}"] = rel_variance(scene, {**base, "transmittance": m}, spp,

@@ -14,7 +14,7 @@
 3. Cost against sparsity: grids whose max/mean density rises from 1 to 100 at a fixed
    mean extinction; time per sample of both integrators relative to max/mean = 1, and
    null collisions per path. Ours are counted in our kernels
-   (``walk.count_collisions``); Mitsuba's C++ cannot be instrumented, so its count
+   (``instrument.counting``); Mitsuba's C++ cannot be instrumented, so its count
    is that of the same tracking with one global majorant (volpath's) and ratio-tracked
    shadow rays (volpath's), counted in our kernel with ``majorant_resolution = 1``.
 
@@ -40,7 +40,7 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
 mi.set_variant(VARIANT)
-from mitsuba_plugins import contract, estimators, output, walk
+from mitsuba_plugins import contract, estimators, instrument, output
 from mitsuba_plugins.tools import stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,8 +173,8 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(seed, n)
             t0 = time.perf_counter()
-            T = estimators.transmittance(tracker, ray, mi.Float(length), sampler, method,
-                                       mi.Bool(True))
+            T = estimators.TRANSMITTANCE_ESTIMATORS[method].transmittance(
+                tracker, ray, mi.Float(length), sampler, mi.Bool(True))
             dr.eval(T)
             dr.sync_thread()
             times.append(time.perf_counter() - t0)
@@ -206,22 +206,17 @@ def sparsity_series(res: int, spp: int, runs: int, tmp: Path, ratios) -> list:
         paths = spp * res * res
         for label, cells in (("ours", None), ("builtin_estimate", 1)):
             # volpath's stand-in: one global majorant and no refinement of hot segments
-            refine = contract.REFINE_OPTICAL_DEPTH
-            if label == "builtin_estimate":
-                contract.REFINE_OPTICAL_DEPTH = float("inf")
             kw = {} if cells is None else {"majorant_resolution": cells}  # None: as timed
-            counted = mi.load_dict(_base(res, grid_medium(str(path), 2.0, **kw)))
-            contract.REFINE_OPTICAL_DEPTH = refine
-            counters = walk.count_collisions()
-            mi.render(counted, integrator=mi.load_dict(
-                {"type": "volpath_delta", "max_depth": MAX_DEPTH, "transmittance": "ratio"}),
-                spp=spp, seed=99)
-            c = np.array(counters)
-            walk.count_collisions(False)
-            slot = {name: i for i, name in enumerate(walk.COUNTER_SLOTS)}
-            row[f"{label}_null_per_path"] = float(c[slot["flight_null"]]
-                                                  + c[slot["shadow_tentative"]]) / paths
-            row[f"{label}_null_free_flight_per_path"] = float(c[0]) / paths
+            with instrument.refinement(float("inf") if label == "builtin_estimate" else
+                                       instrument.REFINE_OPTICAL_DEPTH):
+                counted = mi.load_dict(_base(res, grid_medium(str(path), 2.0, **kw)))
+            with instrument.counting() as counts:
+                mi.render(counted, integrator=mi.load_dict(
+                    {"type": "volpath_delta", "max_depth": MAX_DEPTH, "transmittance": "ratio"}),
+                    spp=spp, seed=99)
+                row[f"{label}_null_per_path"] = (counts["flight_null"]
+                                                 + counts["shadow_tentative"]) / paths
+                row[f"{label}_null_free_flight_per_path"] = counts["flight_null"] / paths
         rows.append(row)
     base = rows[0]
     for row in rows:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins.estimators import TRANSMITTANCE_ESTIMATORS, DeltaTracking
+from mitsuba_plugins.estimators import FREE_FLIGHTS, TRANSMITTANCE_ESTIMATORS
 from mitsuba_plugins.scene_media import SceneMedia
 from mitsuba_plugins.validity import refuse_gradients
-from mitsuba_plugins.volumes import VolumetricIntegrator, analytic_flight
+from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
 from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
@@ -15,6 +15,7 @@ VARIANT = mi.variant()
 #: Defaults chosen on the dense-media family (issue 16, benchmarks/results/dense.md):
 #: residual-ratio-tracked shadow rays and the roulette's survival capped at 0.99.
 DEFAULT_TRANSMITTANCE = "residual"
+DEFAULT_FREE_FLIGHT = "delta"
 
 
 class VolpathDelta(VolumetricIntegrator):
@@ -39,6 +40,13 @@ class VolpathDelta(VolumetricIntegrator):
          (0, 0.9999]. Mitsuba's 0.95 makes path weights grow by albedo / 0.95 per
          vertex in media of albedo > 0.95 (heavy-tailed); 0.99 was measured best on the
          dense family. (Default: 0.99)
+     * - free_flight
+       - |string|
+       - Free-flight estimator in heterogeneous media: ``delta`` (delta tracking) or
+         ``decomposition`` (decomposition tracking, Kutz et al. 2017: the majorant
+         grid's per-cell minorant as a control collided on its own clock, the residual
+         delta-tracked; the same estimator with fewer lookups where the minorant is
+         large). (Default: ``delta``)
      * - transmittance
        - |string|
        - Shadow-ray transmittance estimator in heterogeneous media: ``ratio`` (ratio
@@ -83,40 +91,38 @@ class VolpathDelta(VolumetricIntegrator):
     render_forward, render_backward = refuse_gradients("volpath_delta", "prbvolpath")
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance",)
+    PARAMETERS = ("transmittance", "free_flight")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
         self.transmittance = p.choice("transmittance", DEFAULT_TRANSMITTANCE,
                                       tuple(TRANSMITTANCE_ESTIMATORS))
-        self.strategy = DeltaTrackingStrategy(TRANSMITTANCE_ESTIMATORS[self.transmittance])
+        self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
+        self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
+                                         TRANSMITTANCE_ESTIMATORS[self.transmittance])
 
     def to_string(self):
         return (f"VolpathDelta[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
+                f"  free_flight = {self.free_flight},\n"
                 f"  transmittance = {self.transmittance},\n"
                 f"  hide_emitters = {self.hide_emitters}\n]")
 
 
-class DeltaTrackingStrategy:
-    """The medium phase of ``volpath_delta`` (:class:`~mitsuba_plugins.volumes.VolumeStrategy`):
-    analytic flights in homogeneous media, delta tracking in heterogeneous ones, shadow
-    rays by ``estimator``."""
+class TrackingStrategy(VolumeStrategy):
+    """The medium phase of ``volpath_delta``: analytic flights in homogeneous media (the
+    base's), the ``flight`` rule (an entry of
+    :data:`~mitsuba_plugins.estimators.FREE_FLIGHTS`) in heterogeneous ones, shadow rays
+    by ``estimator``."""
 
-    def __init__(self, estimator):
-        self.estimator = estimator
+    def __init__(self, flight, estimator):
+        self.flight, self.estimator = flight, estimator
 
     def shadow_estimator(self, media: SceneMedia):
         return self.estimator
 
-    def gathers_light(self, media: SceneMedia) -> bool:
-        return media.emission
-
-    def homogeneous_flight(self, ctx, medium, ray, t_max, flight, nee, active):
-        return analytic_flight(ctx, medium, ray, t_max, flight, active)
-
     def heterogeneous_flight(self, ctx, tracker, ray, t_max, beta, r_u, nee, active):
         media = ctx.media
-        rule = DeltaTracking(beta, r_u, ctx.hero, media.chromatic_heterogeneous, media.emission)
+        rule = self.flight(beta, r_u, ctx.hero, media.chromatic_heterogeneous, media.emission)
         return walk(tracker, ray, t_max, ctx.sampler, rule, active)
 
 

@@ -12,7 +12,8 @@ from mitsuba_plugins.marching import (STEP_MODES, Marcher, MarchedFlight, Marche
 from mitsuba_plugins.params import PluginParameterError
 from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
 from mitsuba_plugins.validity import refuse_gradients
-from mitsuba_plugins.volumes import VolumetricIntegrator, analytic_flight
+from mitsuba_plugins.estimators import FreeFlight
+from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
 from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
@@ -115,11 +116,10 @@ class VolpathRaymarch(VolumetricIntegrator):
                 f"  hide_emitters = {self.hide_emitters}\n]")
 
 
-class RayMarchingStrategy:
-    """The medium phase of ``volpath_raymarch``
-    (:class:`~mitsuba_plugins.volumes.VolumeStrategy`): marched flights, single
-    scattering or marched shadow rays in heterogeneous media; homogeneous media are never
-    marched."""
+class RayMarchingStrategy(VolumeStrategy):
+    """The medium phase of ``volpath_raymarch``: marched flights, single scattering or
+    marched shadow rays in heterogeneous media; homogeneous media are never marched
+    (``multi``: the base's analytic flight)."""
 
     def __init__(self, settings: VolpathRaymarch):
         self.mode, self.step_size = settings.mode, settings.step_size
@@ -140,9 +140,9 @@ class RayMarchingStrategy:
     def gathers_light(self, media: SceneMedia) -> bool:
         return self.mode == "single" or media.emission
 
-    def homogeneous_flight(self, ctx, medium, ray, t_max, flight, nee, active):
+    def homogeneous_flight(self, ctx, medium, ray, t_max, beta, r_u, nee, active):
         if self.mode == "multi":
-            return analytic_flight(ctx, medium, ray, t_max, flight, active)
+            return super().homogeneous_flight(ctx, medium, ray, t_max, beta, r_u, nee, active)
         # Single scattering: the whole segment is one cell of known transmittance.
         sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
                                                                  active)
@@ -152,10 +152,10 @@ class RayMarchingStrategy:
         mei = medium_interaction(ray, s)
         mei.medium = medium
         lit = active & nee
-        flight.L_e[lit] += flight.beta * weight * mi.Spectrum(sigma_s) * \
-            in_scatter(ctx, medium, mei, lit)
-        flight.beta[active] *= homogeneous_transmittance(sigma_t, t_max)
-        return flight
+        L_e = dr.select(lit, beta * weight * mi.Spectrum(sigma_s) *
+                        in_scatter(ctx, medium, mei, lit), 0.0)
+        return FreeFlight(mi.Bool(False), mi.Float(0.0),
+                          beta * homogeneous_transmittance(sigma_t, t_max), r_u, L_e)
 
     def heterogeneous_flight(self, ctx, tracker, ray, t_max, beta, r_u, nee, active):
         media = ctx.media

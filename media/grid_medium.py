@@ -7,6 +7,7 @@ its majorants :func:`mitsuba_plugins.majorant.derive`, RGB in other variants
 """
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -166,6 +167,10 @@ class GridMedium(mi.Medium):
             self.multiplier = Multiplier(1.0)
             self._voxels = None  # a nested volume's lookups are Mitsuba's own
         self.scale = mi.Float(scale)
+        # opaque, not literals: a literal 0 channel (sigma_t = (1, 1e-4, 0)) was folded
+        # into a constant of the first render's width, and a render at another spp then
+        # failed ("operands have incompatible sizes"); opaque values also reuse the kernel
+        dr.make_opaque(self.scale, self.sigma_t_factor)
         chromatic = self.channels == 3 or len(set(floats(self.sigma_t_factor))) > 1
         self.m_has_spectral_extinction = p.bool("has_spectral_extinction", chromatic)
         self.m_is_homogeneous = False
@@ -228,6 +233,17 @@ class GridMedium(mi.Medium):
     @property
     def data(self):
         return self.store.data
+
+    @property
+    def control_scale(self) -> float:
+        """The factor that makes the majorant grid's gray minorant a lower bound of every
+        channel (:class:`~mitsuba_plugins.majorant.MajorantBuilder` takes it with the
+        multiplier's largest channel where one weight serves all: 1-channel or upsampled
+        data), for controls that must stay below the extinction (decomposition tracking)."""
+        m = self.multiplier
+        single = self.filename is not None and (self.store.values.channels == 1
+                                                or self.store.values.upsampled)
+        return m.lower / m.upper if single and m.upper > 0 else 1.0
 
     def _update_majorants(self) -> None:
         """(Re)derive the global majorant and the majorant grid from the current data."""
@@ -318,6 +334,7 @@ class GridMedium(mi.Medium):
                 f"grid_medium: parameter 'sigma_t' = {factor} is invalid; allowed: finite "
                 "values >= 0")
         self.multiplier = Multiplier(factor)
+        dr.make_opaque(self.scale, self.sigma_t_factor)
         stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
         self.store.changed()
         self._update_majorants()

@@ -16,20 +16,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_plugins import instrument
 from mitsuba_plugins.dda import MajorantGrid
 from mitsuba_plugins.spectra import probe_wavelengths
 
 VARIANT = mi.variant()
 
-#: A majorant segment of optical depth (sigma_maj x length) above this is *hot*: walked
-#: in pieces with tighter bounds (:func:`mitsuba_plugins.walk.refined_piece`); below it,
-#: plain tracking takes at most this many tentative collisions per segment on average,
-#: which is cheaper than pieces (each costs a lookup): at 16 the benchmark's max/mean-100
-#: grid (cells of optical depth 43) was refined and its time per sample rose 1.37x over
-#: max/mean 30 with the same collision counts. Our scenes' segments stay below 7
-#: (sparse.xml); the hard cases of 1e4 (optical depth ~2000) and beyond are refined.
-#: Read at trace time (tests and benchmarks change it).
-REFINE_OPTICAL_DEPTH = 256.0
 
 
 class TrackedMedium(Protocol):
@@ -45,8 +37,9 @@ class TrackedMedium(Protocol):
       (see :func:`mitsuba_plugins.walk.refined_piece`), else None;
     * ``eval_sigma_t(mei, active)``, ``eval_albedo(mei, active)`` and
       ``get_radiance(mei, active)`` (``Le``; 0 without emission), per channel;
-    * ``has_emission``, ``is_chromatic`` (extinction differs between channels) and
-      ``bbox`` (world bounds), plus Mitsuba's ``intersect_aabb``.
+    * ``has_emission``, ``is_chromatic`` (extinction differs between channels),
+      ``bbox`` (world bounds) and ``control_scale`` (the factor that makes the grid's
+      gray minorant a lower bound of every channel), plus Mitsuba's ``intersect_aabb``.
 
     Any other medium (Mitsuba's ``heterogeneous``) is tracked through Mitsuba's own
     interface alone: one global majorant and ``get_scattering_coefficients``.
@@ -88,12 +81,15 @@ class Tracker:
     ``grid`` / ``march_grid``: the bounds tracking and majorant-mode marches step by;
     ``voxels``: ``(voxels per local unit on each axis, trilinear)`` of a grid whose hot
     segments are refined, else None; ``hot``: a segment can hold more than
-    :data:`REFINE_OPTICAL_DEPTH` tentative collisions, so a crossing's work is not
+    ``instrument.settings.refine_optical_depth`` tentative collisions (256 by default), so a
+    crossing's work is not
     bounded by construction and the walk keeps a work budget; ``diagonal``: of the
     medium's world box (None: unbounded, as Mitsuba's media say)."""
     has_emission = False
     voxels = None
     diagonal = None
+    #: turns the grid's gray minorant into a lower bound of every channel
+    control_scale = 1.0
 
     def __init__(self, medium: mi.Medium):
         self.medium = medium
@@ -121,12 +117,17 @@ class GridTracker(Tracker):
         self.is_chromatic = bool(medium.is_chromatic)
         self.diagonal = diagonal(medium.bbox)
         self.voxels = medium.refinement
+        self.control_scale = float(medium.control_scale)
         self.grid = medium.majorant_grid
         self.march_grid = medium.march_grid
         self.hot = self.voxels is not None
 
     def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
         return mi.Spectrum(self.medium.eval_sigma_t(mei, active))
+
+    def albedo(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
+        """The single-scattering albedo (no density lookup)."""
+        return mi.Spectrum(self.medium.eval_albedo(mei, active))
 
     def properties(self, mei: mi.MediumInteraction3f, active) -> MediumProperties:
         sigma_t = mi.Spectrum(self.medium.eval_sigma_t(mei, active))
@@ -151,7 +152,7 @@ class MitsubaTracker(Tracker):
                                  mi.ScalarTransform4f(), value)
         self.march_grid = self.grid
         #: ``extent``: the longest stretch a ray can travel through it
-        self.hot = value * extent > REFINE_OPTICAL_DEPTH
+        self.hot = value * extent > instrument.settings.refine_optical_depth
 
     def sigma_t(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
         _, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
@@ -160,6 +161,11 @@ class MitsubaTracker(Tracker):
     def properties(self, mei: mi.MediumInteraction3f, active) -> MediumProperties:
         sigma_s, _, sigma_t = self.medium.get_scattering_coefficients(mei, active)
         return MediumProperties(mi.Spectrum(sigma_t), mi.Spectrum(sigma_s), mi.Spectrum(0.0))
+
+    def albedo(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
+        """``sigma_s / sigma_t`` (0 where the medium is empty)."""
+        props = self.properties(mei, active)
+        return props.sigma_s / dr.select(props.sigma_t > 0, props.sigma_t, 1.0)
 
 
 def tracker_for(medium: mi.Medium, extent: float = np.inf, bbox=None) -> Tracker:

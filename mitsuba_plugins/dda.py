@@ -108,18 +108,11 @@ class MajorantGrid:
         cell = self._clamp_cell(mi.Vector3i(dr.floor((o + d * t_mid) * res)))
         return DDAState(mi.Float(t_start), mi.Float(t_stop), t_in, t_out, cell, o, d)
 
-    def next(self, state: DDAState, active=True):
-        """The next segment: returns ``(t0, t1, sigma_maj, state)``.
-
-        Call while ``state.t < state.t_end``. Segments have ``t1 >= t0`` and the next
-        one starts where this one ends; inside the box each is one cell.
-        """
-        t0, t1, sigma_maj, _, state = self.next_bounds(state, active, minorant=False)
-        return t0, t1, sigma_maj, state
-
     def next_bounds(self, state: DDAState, active=True, minorant: bool = True):
-        """As :meth:`next`, with the segment's minorant: ``(t0, t1, sigma_maj,
-        sigma_min, state)`` (``sigma_min`` is 0 outside the box or when not asked for)."""
+        """The next segment: ``(t0, t1, sigma_maj, sigma_min, state)`` (``sigma_min`` is 0
+        outside the box or when not asked for). Call while ``state.t < state.t_end``.
+        Segments have ``t1 >= t0`` and the next one starts where this one ends; inside the
+        box each is one cell."""
         t0 = mi.Float(state.t)
         before = t0 < state.t_in
         inside = ~before & (t0 < state.t_out)
@@ -153,19 +146,3 @@ class MajorantGrid:
                        state.t_out, dr.select(active, self._clamp_cell(cell), state.cell),
                        state.o, state.d)
         return t0, t1, sigma_maj, sigma_min, new
-
-    def segments(self, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None = None):
-        """All segments as numpy arrays ``(t0, t1, sigma_maj, valid)`` of shape
-        ``(n_rays, n_segments)``; for tests and inspection, not for render kernels."""
-        rx, ry, rz = self.resolution
-        limit = max_segments or (rx + ry + rz + 3)
-        state = self.start(ray, mi.Float(t_start), mi.Float(t_stop))
-        n = dr.width(ray)
-        out = []
-        for _ in range(limit):
-            active = state.t < state.t_end
-            t0, t1, sigma_maj, state = self.next(state, active)
-            dr.eval(t0, t1, sigma_maj, active, state.t, state.cell)
-            out.append(tuple(np.broadcast_to(np.asarray(x), (n,))
-                             for x in (t0, t1, sigma_maj, active)))
-        return tuple(np.stack(x, axis=1) for x in zip(*out))

@@ -25,7 +25,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
-from mitsuba_plugins.walk import MajorantSegments, count, walk
+from mitsuba_plugins.instrument import count
+from mitsuba_plugins.walk import MajorantSegments, walk
 
 VARIANT = mi.variant()
 
@@ -108,31 +109,67 @@ def homogeneous_transmittance(sigma_t: mi.Spectrum, distance: mi.Float) -> mi.Sp
 # -- rules of the walk: tentative collisions ------------------------------------------
 class NullCollisionRule:
     """Tentative collisions at rate ``sigma_maj - sigma_c`` along majorant segments
-    (``sigma_c``: the segment's minorant when ``control``, else 0), one exponential
-    optical depth ``tau`` carried across segments. Subclasses say what a collision at
-    ``t`` does (:meth:`collide`) and what the rest of the way costs (:meth:`travel`)."""
-    control = False                 # tentative collisions against sigma_maj - sigma_min
-    segments = MajorantSegments(minorant=False)
-    slot = 1                        # collision counter (walk.count_collisions)
-    counts_null_only = False        # count only collisions the walk goes on past
+    (``sigma_c``: the control extinction, :meth:`control_extinction`, when ``control``,
+    else 0), one exponential optical depth ``tau`` carried across segments. Subclasses
+    say what a collision at ``t`` does (:meth:`collide`), what the rest of the way costs
+    (:meth:`travel`) and, with ``clock``, when an event of their own ends a step first
+    (:meth:`sample_clock`, :meth:`ring`). The segments they walk follow from ``control``
+    (:attr:`segments`: with the minorant when a control needs it)."""
+    control = False                 # tentative collisions against sigma_maj - sigma_c
+    clock = False                   # a clock of the rule's own (sample_clock, ring)
+    flight = False                  # a free flight (counted as one, instrument.counting)
+
+    @property
+    def segments(self) -> MajorantSegments:
+        return MajorantSegments(minorant=self.control)
+
+    def control_extinction(self, tracker, seg) -> mi.Float:
+        """``sigma_c`` on the current piece: its segment's minorant."""
+        return seg.sigma_min
 
     def step(self, tracker, ray, sampler, seg, t, state, active):
-        rate = seg.sigma_maj - seg.sigma_min if self.control else seg.sigma_maj
+        rate = seg.sigma_maj - self.control_extinction(tracker, seg) if self.control else \
+            seg.sigma_maj
         seg_tau = dr.select(rate > 0, rate * (seg.t_end - t), 0.0)
         collide = active & (state.tau < seg_tau)
         step = dr.select(collide, state.tau / rate, seg.t_end - t)
-        self.travel(state, seg, step, active)
-        t = dr.select(active, dr.select(collide, t + step, seg.t_end), t)
-        state.tau = dr.select(active & ~collide, state.tau - seg_tau, state.tau)
+        if not self.clock:
+            self.travel(state, seg, step, active)
+            t = dr.select(active, dr.select(collide, t + step, seg.t_end), t)
+            state.tau = dr.select(active & ~collide, state.tau - seg_tau, state.tau)
+        else:
+            # the rule's own clock may ring first: the step ends there, and the tentative
+            # collisions' clock keeps the optical depth it has not spent
+            ring, step = self.sample_clock(tracker, seg, t, step, state, active)
+            collide &= ~ring
+            self.travel(state, seg, step, active)
+            t = dr.select(active, dr.select(collide | ring, t + step, seg.t_end), t)
+            spent = dr.select(rate > 0, rate * step, 0.0)
+            state.tau = dr.select(active & ~collide, state.tau - spent, state.tau)
+            active = active & self.ring(tracker, ray, sampler, t, state, ring)
         alive = self.collide(tracker, ray, sampler, t, seg.sigma_maj, rate, state, collide)
         active = active & alive
-        count(self.slot, active & collide if self.counts_null_only else collide)
+        if self.flight:
+            count("flight_tentative", collide)
+            count("flight_null", active & collide)
+        else:
+            count("shadow_tentative", collide)
         redraw = active & collide
         state.tau = dr.select(redraw, -dr.log(1.0 - sampler.next_1d(redraw)), state.tau)
         return t, state, active
 
     def travel(self, state, seg, step, active) -> None:
         """Weight for travelling ``step`` without a tentative collision (none by default)."""
+
+    def sample_clock(self, tracker, seg, t, step, state, active):
+        """``(ring, step)``: whether the rule's clock rings within ``step`` of ``t`` on the
+        ``active`` lanes, and the step shortened to it where it does (with ``clock``)."""
+        raise NotImplementedError
+
+    def ring(self, tracker, ray, sampler, t, state, ring) -> mi.Bool:
+        """What the clock's event at ``t`` does on the ``ring`` lanes; returns whether
+        a lane goes on."""
+        raise NotImplementedError
 
 
 class TransmittanceState:
@@ -181,7 +218,6 @@ class ResidualRatioTracking(RatioTracking):
     in a cell of constant density."""
     label = "residual_tracking"
     control = True
-    segments = MajorantSegments(minorant=True)
 
     def travel(self, state, seg, step, active):
         state.T = dr.select(active, state.T * dr.exp(-seg.sigma_min * step), state.T)
@@ -207,10 +243,20 @@ TRANSMITTANCE_ESTIMATORS = {"ratio": RatioTracking(), "residual": ResidualRatioT
                             "track_length": TrackLength()}
 
 
-def transmittance(tracker: Tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler,
-                  method: str, active: mi.Bool) -> mi.Spectrum:
-    """Transmittance over ``[0, t_max]`` estimated by the named estimator."""
-    return TRANSMITTANCE_ESTIMATORS[method].transmittance(tracker, ray, t_max, sampler, active)
+def spectral_decision(beta, r_u, hero, collide, real, p_real, p_null, sigma_s):
+    """Throughput and spectral-MIS ratios after a tentative collision that the hero
+    channel decided: real with per-channel decision densities ``p_real`` (then
+    ``beta`` takes ``sigma_s / p_real[h]``), null with ``p_null`` (``beta`` takes
+    ``p_null / p_null[h]``); ``r_u`` takes every channel's density over the hero's.
+    Both are then divided by ``mean(r_u)``, so ``beta`` *is* the effective throughput
+    and ``r_u[h]`` stays positive (Miller, Georgiev and Jarosz 2019). Returns
+    ``(beta, r_u)``, unchanged off ``collide``."""
+    p_real_h = index_channel(p_real, hero)
+    ratio = dr.select(real, p_real / p_real_h, p_null / index_channel(p_null, hero))
+    beta = dr.select(collide, beta * dr.select(real, sigma_s / p_real_h, ratio), beta)
+    r_u = dr.select(collide, r_u * ratio, r_u)
+    norm = dr.rcp(dr.mean(r_u))
+    return dr.select(collide, beta * norm, beta), dr.select(collide, r_u * norm, r_u)
 
 
 class DeltaState:
@@ -244,8 +290,7 @@ class DeltaTracking(NullCollisionRule):
     """
     label = "delta_tracking"
     budget = "beta"
-    slot = 0
-    counts_null_only = True
+    flight = True
 
     def __init__(self, beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, chromatic: bool,
                  emission: bool):
@@ -267,14 +312,9 @@ class DeltaTracking(NullCollisionRule):
                                   state.L_e)
         u = sampler.next_1d(collide)
         if self.chromatic:
-            sigma_t_h = index_channel(sigma_t, self.hero)
-            real = collide & (u * sigma_maj < sigma_t_h)
-            ratio = dr.select(real, sigma_t / sigma_t_h, sigma_n / index_channel(sigma_n, self.hero))
-            beta = dr.select(collide, beta * dr.select(real, sigma_s / sigma_t_h, ratio), beta)
-            r_u = dr.select(collide, state.r_u * ratio, state.r_u)
-            norm = dr.rcp(dr.mean(r_u))
-            state.beta = dr.select(collide, beta * norm, beta)
-            state.r_u = dr.select(collide, r_u * norm, r_u)
+            real = collide & (u * sigma_maj < index_channel(sigma_t, self.hero))
+            state.beta, state.r_u = spectral_decision(beta, state.r_u, self.hero, collide, real,
+                                                      sigma_t, sigma_n, sigma_s)
         else:
             real = collide & (u * sigma_maj < sigma_t[0])
             state.beta = dr.select(real, beta * (sigma_s / sigma_t), beta)
@@ -283,3 +323,104 @@ class DeltaTracking(NullCollisionRule):
 
     def finish(self, t, state, t_out, entered):
         return FreeFlight(state.scattered, t, state.beta, state.r_u, state.L_e)
+
+
+class DecompositionState:
+    DRJIT_STRUCT = {"tau": mi.Float,          # residual optical depth to the next collision
+                    "tau_c": mi.Float,        # control optical depth to its collision
+                    "beta": mi.Spectrum,      # throughput
+                    "r_u": mi.Spectrum,       # decision-pdf ratios (spectral MIS)
+                    "L_e": mi.Spectrum,       # medium emission collected
+                    "scattered": mi.Bool}     # stopped at a real collision
+
+    def __init__(self, tau=None, tau_c=None, beta=None, r_u=None, L_e=None, scattered=None):
+        self.tau, self.tau_c, self.beta, self.r_u = tau, tau_c, beta, r_u
+        self.L_e, self.scattered = L_e, scattered
+
+
+#: With emission, decomposition keeps its control below this share of the majorant:
+#: emission is gathered at the residual's tentative collisions, which must not vanish
+#: where the medium emits.
+EMISSIVE_CONTROL_SHARE = 0.5
+
+
+class DecompositionTracking(DeltaTracking):
+    r"""Free flight by decomposition tracking (Kutz, Habel, Li and Novak 2017): the
+    extinction splits into a control :math:`\sigma_c` (gray, constant on a majorant
+    piece: its minorant, a lower bound of every channel) and a residual
+    :math:`\sigma_r = \sigma_t - \sigma_c \ge 0`. Collisions of the control come from
+    a clock of their own (one exponential optical depth spent at rate
+    :math:`\sigma_c`: no lookup decides them); the residual is delta-tracked against
+    :math:`\sigma_{maj} - \sigma_c`. The first real collision of either ends the flight,
+    and its weight is the scattering of that component over its density: the albedo
+    :math:`\sigma_s / \sigma_t` for both in a gray medium (the same estimator as delta
+    tracking, with :math:`\sigma_c / \sigma_{maj}` fewer lookups). Chromatic: the hero
+    decides the residual as :class:`DeltaTracking` decides it (densities
+    :math:`\sigma_r` real, :math:`\sigma_{maj} - \sigma_t` null); a control collision
+    has the same density in every channel, so it leaves ``r_u`` as it is and ``beta``
+    takes the albedo per channel. Emission is gathered at the residual's tentative
+    collisions (:math:`\beta \sigma_a L_e / (\sigma_{maj} - \sigma_c)`), the control
+    then kept below :data:`EMISSIVE_CONTROL_SHARE` of the majorant.
+    """
+    label = "decomposition_tracking"
+    control = True
+    clock = True
+
+    def control_extinction(self, tracker, seg) -> mi.Float:
+        # the segment's minorant times the tracker's factor that makes it a lower bound
+        # of every channel (a chromatic multiplier's minorant is the largest channel's)
+        sigma_c = seg.sigma_min * tracker.control_scale
+        if self.emission:
+            sigma_c = dr.minimum(sigma_c, EMISSIVE_CONTROL_SHARE * seg.sigma_maj)
+        return dr.minimum(sigma_c, seg.sigma_maj)
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        tau = -dr.log(1.0 - sampler.next_1d(active))
+        tau_c = -dr.log(1.0 - sampler.next_1d(active))
+        return DecompositionState(tau, tau_c, mi.Spectrum(self.beta), mi.Spectrum(self.r_u),
+                                  mi.Spectrum(0.0), mi.Bool(False))
+
+    def sample_clock(self, tracker, seg, t, step, state, active):
+        sigma_c = self.control_extinction(tracker, seg)
+        reach = dr.select(sigma_c > 0, state.tau_c / sigma_c, dr.inf)
+        ring = active & (reach < step)
+        step = dr.select(ring, reach, step)
+        state.tau_c = dr.select(active & ~ring, state.tau_c - sigma_c * step, state.tau_c)
+        return ring, step
+
+    def ring(self, tracker, ray, sampler, t, state, ring):
+        # a control collision's weight is the albedo: no density lookup (grid media)
+        albedo = tracker.albedo(medium_interaction(ray, t), ring)
+        state.beta = dr.select(ring, state.beta * albedo, state.beta)
+        state.scattered |= ring
+        return ~ring
+
+    def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
+        props = tracker.properties(medium_interaction(ray, t), collide)
+        sigma_t, sigma_s = props.sigma_t, props.sigma_s
+        sigma_c = sigma_maj - rate
+        sigma_r = dr.maximum(sigma_t - sigma_c, 0.0)
+        sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
+        beta = state.beta
+        if self.emission:
+            state.L_e = dr.select(collide,
+                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / rate,
+                                  state.L_e)
+        u = sampler.next_1d(collide)
+        if self.chromatic:
+            real = collide & (u * rate < index_channel(sigma_r, self.hero))
+            # the residual's scattering: its share of the medium's, sigma_s sigma_r / sigma_t
+            share = sigma_s * sigma_r / dr.select(sigma_t > 0, sigma_t, 1.0)
+            state.beta, state.r_u = spectral_decision(beta, state.r_u, self.hero, collide, real,
+                                                      sigma_r, sigma_n, share)
+        else:
+            real = collide & (u * rate < sigma_r[0])
+            state.beta = dr.select(real, beta * (sigma_s / sigma_t), beta)
+        state.scattered |= real
+        return ~real
+
+
+#: Free-flight estimators by name (``free_flight`` parameter of ``volpath_delta``); each
+#: is built per render as ``cls(beta, r_u, hero, chromatic, emission)``.
+FREE_FLIGHTS = {"delta": DeltaTracking, "decomposition": DecompositionTracking}
+

@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import contract
+from mitsuba_plugins import instrument
 from mitsuba_plugins.dda import MajorantGrid
 from mitsuba_plugins.params import PluginParameterError
 
@@ -170,12 +170,6 @@ class ProductMajorantBuilder(MajorantBuilder):
         return (cells * np.float32(self.weight) * np.float32(1 - ROUNDING)).astype(np.float32)
 
 
-def build_majorants(data: np.ndarray, resolution, weights=1.0, margin: float = MARGIN,
-                    slab: int = 16) -> np.ndarray:
-    """Cell bounds ``(Rz, Ry, Rx)`` of a whole ``(Z, Y, X, C)`` array."""
-    return MajorantBuilder(data.shape, resolution, weights, margin).add_all(data, slab).finish()
-
-
 def pool(values: np.ndarray, shape, op=np.max) -> np.ndarray:
     """Cell bounds ``(Rz, Ry, Rx)`` carried to a coarser ``shape`` ``(rz, ry, rx)``: each
     coarse cell takes ``op`` (np.max for majorants, np.min for minorants) over every fine
@@ -279,7 +273,7 @@ def derive(values: np.ndarray, lows: np.ndarray, grid_max: float, scale: float, 
 
 def _has_hot_cells(cells: np.ndarray, to_local) -> bool:
     """Can a ray cross a majorant cell with optical depth (bound x length) above
-    contract.REFINE_OPTICAL_DEPTH? The longest segment in a cell is its longest
+    ``instrument.settings.refine_optical_depth``? The longest segment in a cell is its longest
     diagonal."""
     if not cells.size:
         return False
@@ -288,7 +282,7 @@ def _has_hot_cells(cells: np.ndarray, to_local) -> bool:
     diagonals = [linear @ (np.array([sx, sy, 1.0]) / (rx, ry, rz))
                  for sx in (-1, 1) for sy in (-1, 1)]
     longest = max(float(np.linalg.norm(d)) for d in diagonals)
-    return float(np.max(cells)) * longest > contract.REFINE_OPTICAL_DEPTH
+    return float(np.max(cells)) * longest > instrument.settings.refine_optical_depth
 
 
 def _check_voxel_optical_depth(majorant: float, to_local, shape, plugin, source) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 from mitsuba_plugins.contract import (diagonal, medium_interaction, probe_interaction,
                                       tracker_for)
 from mitsuba_plugins.estimators import homogeneous_transmittance
-from mitsuba_plugins.walk import count
+from mitsuba_plugins.instrument import count
 
 VARIANT = mi.variant()
 
@@ -90,13 +90,13 @@ class SceneMedia:
 
     def dispatch(self, medium: mi.MediumPtr, active, value, homogeneous, heterogeneous):
         """The one homogeneous / heterogeneous split: ``value`` on lanes outside media,
-        ``homogeneous(value, mask)`` on lanes in a homogeneous medium (traced only if
-        the scene has one) and ``heterogeneous(tracker, mask)`` on the others."""
+        ``homogeneous(mask)`` on lanes in a homogeneous medium (traced only if the scene
+        has one) and ``heterogeneous(tracker, mask)`` on the others."""
         in_medium = active & (medium != None)  # noqa: E711
         is_homogeneous = mi.Bool(False)
         if self.homogeneous:
             is_homogeneous = in_medium & medium.is_homogeneous()
-            value = homogeneous(value, is_homogeneous)
+            value = dr.select(is_homogeneous, homogeneous(is_homogeneous), value)
         if self.heterogeneous:
             mask = in_medium & ~is_homogeneous
             value = dr.select(mask, self.call(medium, heterogeneous, mask), value)
@@ -109,10 +109,10 @@ class SceneMedia:
         mask)`` in heterogeneous ones (an entry of
         :data:`~mitsuba_plugins.estimators.TRANSMITTANCE_ESTIMATORS`, or a
         :class:`~mitsuba_plugins.marching.Marcher`)."""
-        def analytic(T, mask):
+        def analytic(mask):
             _, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
                                                                mask)
-            return dr.select(mask, homogeneous_transmittance(mi.Spectrum(sigma_t), t_max), T)
+            return homogeneous_transmittance(mi.Spectrum(sigma_t), t_max)
 
         def estimated(tracker, mask):
             return estimator.transmittance(tracker, ray, t_max, sampler, mask)
@@ -136,7 +136,7 @@ def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction
     while dr.hint(active, label="shadow_ray"):
         ray.maxt = remaining
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
-        count(4, active)
+        count("intersections", active)
         T[active] *= media.transmittance(medium, ray, dr.minimum(si.t, remaining), sampler,
                                          estimator, active)
         hit = active & si.is_valid()

@@ -154,8 +154,8 @@ class GridValues:
 class Multiplier:
     """A constant RGB factor (``grid_medium``'s ``sigma_t``) in the active variant: the
     three floats in RGB, their luminance in mono, the upsampled spectrum in spectral
-    variants (gray stays a constant). ``upper``: its largest value over channels or
-    wavelengths (for majorants). Its scalars are opaque."""
+    variants (gray stays a constant). ``upper`` / ``lower``: its largest / smallest value
+    over channels or wavelengths (for majorants and controls). Its scalars are opaque."""
 
     def __init__(self, rgb):
         rgb = np.broadcast_to(np.asarray(rgb, np.float32).reshape(-1), (3,)).copy()
@@ -166,13 +166,14 @@ class Multiplier:
             model = upsample(rgb)
             self.model = dr.opaque(mi.Array3f, model[:3].tolist())
             self.scale = dr.opaque(mi.Float, float(model[3]))
-            _, s_max = model_range(model[None])
+            s_min, s_max = model_range(model[None])
             self.upper = float(model[3] * s_max[0])
+            self.lower = float(model[3] * s_min[0])
         elif mi.is_monochromatic:
             self.value = dr.opaque(mi.Float, float(luminance(rgb)[0]))
-            self.upper = float(luminance(rgb)[0])
+            self.upper = self.lower = float(luminance(rgb)[0])
         else:
-            self.upper = float(rgb.max())
+            self.upper, self.lower = float(rgb.max()), float(rgb.min())
 
     def weights(self, channels: int) -> np.ndarray:
         """Per-channel weights of stored values for a gray bound (RGB: the factor per

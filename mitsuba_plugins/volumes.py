@@ -9,8 +9,6 @@ surface loop in scenes without media.
 """
 from __future__ import annotations
 
-from typing import Protocol
-
 import drjit as dr
 import mitsuba as mi
 
@@ -20,15 +18,9 @@ from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
 from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
 from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
-from mitsuba_plugins.walk import count
+from mitsuba_plugins.instrument import count, settings
 
 VARIANT = mi.variant()
-
-#: Benchmark instrumentation (benchmarks/dense.py): the terms of the estimator that
-#: kernels traced afterwards add to ``L`` -- ``"emission"`` (emitters found by
-#: phase/BSDF sampling, MIS-weighted) and ``"nee"`` (emitter sampling). Both by default.
-ALL_TERMS = ("emission", "nee")
-TERMS = ALL_TERMS
 
 
 class VolumeContext:
@@ -41,59 +33,61 @@ class VolumeContext:
         self.phase_ctx, self.hero, self.estimator = phase_ctx, hero, estimator
 
 
-class VolumeStrategy(Protocol):
-    """The medium phase of :func:`trace_volumes`. ``nee`` masks lanes whose depth
-    allows an emitter sample in a medium; flights return a :class:`FreeFlight`."""
+class VolumeStrategy:
+    """The medium phase of :func:`trace_volumes`: what a flight through a medium does.
+    Both flights take the same arguments and return a :class:`FreeFlight` for the
+    ``active`` lanes: ``(ctx, medium_or_tracker, ray, t_max, beta, r_u, nee, active)``,
+    ``nee`` masking lanes whose depth allows an emitter sample in a medium. By default a
+    homogeneous medium's flight is analytic (:func:`analytic_flight`); a strategy says
+    how to cross a heterogeneous one and how shadow rays are estimated."""
 
     def shadow_estimator(self, media: SceneMedia):
         """Shadow-ray transmittance estimator (an object with ``transmittance``)."""
+        raise NotImplementedError
 
     def gathers_light(self, media: SceneMedia) -> bool:
         """Whether flights gather light (``FreeFlight.L_e``) in this scene."""
+        return media.emission
 
     def homogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
-                           t_max: mi.Float, flight: FreeFlight, nee: mi.Bool,
-                           active: mi.Bool) -> FreeFlight:
-        """``flight`` updated on the ``active`` lanes (all in homogeneous media)."""
+                           t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
+                           nee: mi.Bool, active: mi.Bool) -> FreeFlight:
+        return analytic_flight(ctx, medium, ray, t_max, beta, r_u, active)
 
     def heterogeneous_flight(self, ctx: VolumeContext, tracker: Tracker, ray: mi.Ray3f,
                              t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
                              nee: mi.Bool, active: mi.Bool) -> FreeFlight:
-        """The flight through ``tracker``'s medium on the ``active`` lanes."""
+        raise NotImplementedError
 
 
 def analytic_flight(ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f, t_max: mi.Float,
-                    flight: FreeFlight, active: mi.Bool) -> FreeFlight:
-    """Analytic free flight in homogeneous media on the ``active`` lanes."""
+                    beta: mi.Spectrum, r_u: mi.Spectrum, active: mi.Bool) -> FreeFlight:
+    """Analytic free flight in homogeneous media (docs/method.md section 7)."""
     sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
                                                              active)
     chromatic = ctx.media.chromatic_homogeneous
-    t, scattered, weight, r_u = homogeneous_free_flight(
-        mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), chromatic, ctx.hero,
-        flight.r_u)
-    flight.beta[active] *= dr.select(scattered, mi.Spectrum(sigma_s) * weight, weight)
-    if chromatic:
-        flight.r_u[active] = r_u
-    flight.scattered |= active & scattered
-    flight.t[active] = t
-    return flight
+    t, scattered, weight, r_u_new = homogeneous_free_flight(
+        mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), chromatic, ctx.hero, r_u)
+    return FreeFlight(active & scattered, t,
+                      beta * dr.select(scattered, mi.Spectrum(sigma_s) * weight, weight),
+                      r_u_new if chromatic else r_u, mi.Spectrum(0.0))
 
 
-def free_flight(ctx: VolumeContext, strategy, medium: mi.MediumPtr, ray: mi.Ray3f,
-                t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum, nee: mi.Bool,
-                active: mi.Bool) -> FreeFlight:
+def free_flight(ctx: VolumeContext, strategy: VolumeStrategy, medium: mi.MediumPtr,
+                ray: mi.Ray3f, t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
+                nee: mi.Bool, active: mi.Bool) -> FreeFlight:
     """The flight of ``ray`` through its medium up to the surface at ``t_max``: where
     it collides (if it does), the throughput and spectral-MIS ratios after it and
     the medium light gathered (times ``beta``). Lanes outside media keep their values."""
-    flight = FreeFlight(mi.Bool(False), mi.Float(0.0), mi.Spectrum(beta), mi.Spectrum(r_u),
-                        mi.Spectrum(0.0))
+    outside = FreeFlight(mi.Bool(False), mi.Float(0.0), mi.Spectrum(beta), mi.Spectrum(r_u),
+                         mi.Spectrum(0.0))
 
-    def homogeneous(flight, mask):
-        return strategy.homogeneous_flight(ctx, medium, ray, t_max, flight, nee, mask)
+    def homogeneous(mask):
+        return strategy.homogeneous_flight(ctx, medium, ray, t_max, beta, r_u, nee, mask)
 
     def heterogeneous(tracker, mask):
         return strategy.heterogeneous_flight(ctx, tracker, ray, t_max, beta, r_u, nee, mask)
-    return ctx.media.dispatch(medium, active, flight, homogeneous, heterogeneous)
+    return ctx.media.dispatch(medium, active, outside, homogeneous, heterogeneous)
 
 
 class VolumetricIntegrator(PathIntegrator):
@@ -145,7 +139,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
-        count(4, active)
+        count("intersections", active)
 
         # ------------------- free flight through the medium -------------------
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
@@ -164,7 +158,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # ------------------------ emission with MIS ------------------------
         surface = active & ~scattered
         shown = surface if not integrator.hide_emitters else surface & (depth > 0)
-        if dr.hint("emission" not in TERMS, mode="scalar"):
+        if dr.hint("emission" not in settings.terms, mode="scalar"):
             shown = mi.Bool(False)
         L[shown] = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
                                              prev_pdf, prev_delta), L)
@@ -185,7 +179,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         ds, em_weight = emitters.sample_direction(ref, sampler.next_2d(), active_em,
                                                   test_visibility=False)
         active_em &= ds.pdf != 0
-        if dr.hint("nee" not in TERMS, mode="scalar"):
+        if dr.hint("nee" not in settings.terms, mode="scalar"):
             active_em = mi.Bool(False)
         wo = si.to_local(ds.d)
         shadow_medium = dr.select(on_surface & si.is_medium_transition(),
@@ -223,9 +217,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
         # ------------------------- Russian roulette -------------------------
         depth[real] += 1
-        count(2, scattered)
-        count(3, on_surface & ~null)
-        count(5, active_em)
+        count("medium_vertices", scattered)
+        count("surface_vertices", on_surface & ~null)
+        count("shadow_rays", active_em)
         beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
 
         # ------------------------------ advance ------------------------------

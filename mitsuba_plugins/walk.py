@@ -36,7 +36,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins import contract
+from mitsuba_plugins import instrument
 from mitsuba_plugins.dda import DDAState
 
 VARIANT = mi.variant()
@@ -57,32 +57,6 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 #: (13 sqrt(1e8)).
 WORK_BUDGET = 1 << 18
 WORK_SURVIVAL = 0.5
-#: Benchmark instrumentation: when set (see :func:`count_collisions`), kernels traced
-#: afterwards count events in ``COUNTERS``, one slot per name of :data:`COUNTER_SLOTS`:
-#: null collisions of free flights, every tentative collision of shadow rays, real
-#: scattering vertices in media, real surface vertices, ray intersections (path and
-#: shadow rays) and shadow rays. ``None`` (the default) traces no counting code.
-COUNTERS = None
-COUNTER_SLOTS = ("flight_null", "shadow_tentative", "medium_vertices", "surface_vertices",
-                 "intersections", "shadow_rays")
-
-
-def count_collisions(enable: bool = True):
-    """Turn event counting on (a fresh zeroed ``mi.UInt32``, one counter per
-    :data:`COUNTER_SLOTS` entry, returned) or off. Only kernels traced while it is on
-    count (benchmarks only)."""
-    global COUNTERS
-    COUNTERS = dr.zeros(mi.UInt32, len(COUNTER_SLOTS)) if enable else None
-    if COUNTERS is not None:
-        dr.make_opaque(COUNTERS)
-    return COUNTERS
-
-
-def count(slot: int, active) -> None:
-    if COUNTERS is not None:
-        dr.scatter_add(COUNTERS, mi.UInt32(1), mi.UInt32(slot), active)
-
-
 @dr.syntax
 def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule, active: mi.Bool):
     """Walk ``ray`` over ``[0, t_max]`` through ``tracker``'s medium, applying ``rule``
@@ -168,7 +142,7 @@ class MajorantSegments:
         new_piece = active & exhausted
         t_end = dr.select(new_piece, t_cell, seg.t_end)
         sigma_maj = dr.select(new_piece, sigma_cell, seg.sigma_maj)
-        hot = new_piece & (sigma_cell * (t_cell - t) > contract.REFINE_OPTICAL_DEPTH)
+        hot = new_piece & (sigma_cell * (t_cell - t) > instrument.settings.refine_optical_depth)
         t_piece, bound = refined_piece(tracker, ray, dda, t, t_cell, sigma_cell, hot)
         t_end[hot] = t_piece
         sigma_maj[hot] = bound

@@ -210,6 +210,29 @@ def emissive_slab(Le: float, **medium) -> mi.Scene:
 N_RAYS = 4096
 
 
+def grid_segments(grid, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None = None):
+    """All segments of a :class:`~mitsuba_plugins.dda.MajorantGrid` along ``ray`` as numpy
+    arrays ``(t0, t1, sigma_maj, valid)`` of shape ``(n_rays, n_segments)``."""
+    rx, ry, rz = grid.resolution
+    limit = max_segments or (rx + ry + rz + 3)
+    state = grid.start(ray, mi.Float(t_start), mi.Float(t_stop))
+    n = dr.width(ray)
+    out = []
+    for _ in range(limit):
+        active = state.t < state.t_end
+        t0, t1, sigma_maj, _, state = grid.next_bounds(state, active, minorant=False)
+        dr.eval(t0, t1, sigma_maj, active, state.t, state.cell)
+        out.append(tuple(np.broadcast_to(np.asarray(x), (n,))
+                         for x in (t0, t1, sigma_maj, active)))
+    return tuple(np.stack(x, axis=1) for x in zip(*out))
+
+
+def build_majorants(data: np.ndarray, resolution, weights=1.0) -> np.ndarray:
+    """Cell bounds ``(Rz, Ry, Rx)`` of a whole ``(Z, Y, X, C)`` array."""
+    from mitsuba_plugins.majorant import MajorantBuilder
+    return MajorantBuilder(data.shape, resolution, weights).add_all(data).finish()
+
+
 def random_rays(rng, n, spread=2.5):
     """Origins in and around the box, directions with some exactly axis-parallel
     components (the DDA's divide-by-zero case)."""
@@ -228,7 +251,7 @@ def check_segment_bounds(medium, grid):
     the segments' majorants."""
     rng = np.random.default_rng(3)
     ray, _, _ = random_rays(rng, N_RAYS, spread=3.0)
-    t0, t1, sigma_maj, valid = grid.segments(ray, 0.0, 8.0)
+    t0, t1, sigma_maj, valid = grid_segments(grid, ray, 0.0, 8.0)
     k = 8  # points per segment
     rows, cols = np.nonzero(valid)
     u = rng.random((rows.size, k))

@@ -248,3 +248,15 @@ def test_xml_error_reaches_the_user_as_one_line(grids):
     with pytest.raises(Exception) as info:
         mi.load_string(xml)
     assert user_message(info.value).startswith("grid_medium: parameter 'scale' = -3.0")
+
+
+def test_a_scene_renders_at_several_sample_counts():
+    """A multiplier with a 0 channel (sigma_t = (1, 1e-4, 0)) was a literal that Dr.Jit
+    folded into a constant of the first render's width: the same scene rendered again at
+    another spp failed ("operands have incompatible sizes")."""
+    from helpers import camera, grid, media_scene
+    scene = media_scene(grid(scale=20.0, sigma_t=[1.0, 1e-4, 0.0]), sensor=camera(res=8))
+    for name in ("volpath_delta", "volpath_raymarch"):
+        for spp in (8, 16):
+            assert np.all(np.isfinite(render(scene, {"type": name, "max_depth": 4}, spp=spp)))
+

@@ -6,11 +6,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import N_RAYS, check_segment_bounds, grid, random_rays
+from helpers import (N_RAYS, build_majorants, check_segment_bounds, grid, grid_segments,
+                     random_rays)
 from mitsuba_plugins import gridio
 from mitsuba_plugins.dda import MajorantGrid
-from mitsuba_plugins.majorant import (MajorantBuilder, auto_resolution,
-                                      build_majorants, pool, voxel_ranges)
+from mitsuba_plugins.majorant import MajorantBuilder, auto_resolution, pool, voxel_ranges
 
 
 TRANSFORMS = {
@@ -40,7 +40,7 @@ def test_dda_segments_tile_the_interval(transform):
     ray, _, _ = random_rays(rng, N_RAYS)
     tmin = rng.uniform(0, 1, N_RAYS).astype(np.float32)
     tmax = tmin + rng.uniform(0, 6, N_RAYS).astype(np.float32)
-    t0, t1, sigma_maj, valid = grid.segments(ray, mi.Float(tmin), mi.Float(tmax))
+    t0, t1, sigma_maj, valid = grid_segments(grid, ray, mi.Float(tmin), mi.Float(tmax))
     count = valid.sum(axis=1)
     assert np.all(count >= 1)
     assert not valid[:, -1].any(), "segment limit reached"

@@ -21,7 +21,7 @@ import pytest
 
 from helpers import (SCENES, assert_same_expectation, camera, estimate, grid, media_scene,
                      render, start_cli)
-from mitsuba_plugins import contract, gridio, output, scene_media, walk
+from mitsuba_plugins import contract, gridio, instrument, output, scene_media, walk
 from mitsuba_plugins.tools import cli, compare as cmp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -232,7 +232,7 @@ def _smoke(monkeypatch, refine: float | None):
     """The smoke grid; with ``refine`` as the hot-segment threshold (its segments reach
     optical depth 1.3, so 0.5 makes every grid cell hot: refined and budgeted)."""
     if refine is not None:
-        monkeypatch.setattr(contract, "REFINE_OPTICAL_DEPTH", refine)
+        monkeypatch.setattr(instrument.settings, "refine_optical_depth", refine)
     return media_scene(grid(), sensor=camera(res=16))
 
 

@@ -85,6 +85,34 @@ def test_same_expectation_as_volpath(case):
     _against_volpath(CASES[case](), f"volpath_delta-{case}")
 
 
+@pytest.mark.parametrize("case", ["smoke_grid_medium", "chromatic_grid_medium",
+                                  "sparse_grid_medium", "camera_inside_medium"])
+def test_decomposition_tracking_against_volpath(case):
+    """free_flight = decomposition (issue 25): the same image as volpath's."""
+    _against_volpath(CASES[case](), f"volpath_delta-decomposition-{case}",
+                     free_flight="decomposition")
+
+
+def test_decomposition_decides_no_collision_by_lookup_in_a_constant_grid(tmp_path):
+    """Where the minorant equals the majorant the control takes every collision: no
+    tentative collision is left to decide by a density lookup (delta tracking looks up
+    every one of its collisions). The control is a lower bound of every channel of a
+    chromatic multiplier, so there the residual keeps the other channels' share."""
+    from mitsuba_plugins import instrument
+    path = tmp_path / "const.npy"
+    np.save(path, np.full((6, 6, 6), 2.0, np.float32))
+    lookups = {}
+    for name, factor in (("gray", 1.0), ("chromatic", [1.0, 0.5, 0.25])):
+        scene = media_scene(grid(filename=str(path), scale=1.0, sigma_t=factor),
+                            sensor=camera(res=16))
+        for flight in ("delta", "decomposition"):
+            with instrument.counting() as counts:
+                render(scene, {"type": "volpath_delta", "max_depth": 8, "free_flight": flight},
+                       spp=4)
+                lookups[name, flight] = counts["flight_tentative"]
+    assert lookups["gray", "delta"] > 1000 and lookups["gray", "decomposition"] == 0
+    assert 0 < lookups["chromatic", "decomposition"] < lookups["chromatic", "delta"]
+
 def test_chromatic_homogeneous_against_channelwise_gray_references():
     """volpath's own image is not a usable reference for a 10x extinction ratio (one
     channel drives distance sampling: measured 1.3% of pixels at |z| > 4.65, max
@@ -152,15 +180,16 @@ FURNACE_MEDIA = {
 }
 
 
-@pytest.mark.parametrize("medium", list(FURNACE_MEDIA))
-def test_furnace(medium):
+@pytest.mark.parametrize("medium,flight", [(m, "delta") for m in FURNACE_MEDIA] + [
+    ("grid", "decomposition"), ("grid_chromatic", "decomposition")])
+def test_furnace(medium, flight):
     """Albedo-1 medium in a uniform environment of radiance 1: every pixel is 1."""
     scene = mi.load_dict({
         "type": "scene",
         "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "ball": {"type": "sphere", "bsdf": {"type": "null"}, "interior": FURNACE_MEDIA[medium]},
         "sensor": camera(res=16, fov=30.0)})
-    img = render(scene, {"type": "volpath_delta"}, seed=7, spp=64)
+    img = render(scene, {"type": "volpath_delta", "free_flight": flight}, seed=7, spp=64)
     for c in range(3):
         res = stats.t_test(img[..., c], 1.0)
         assert res.p > 1e-3, f"furnace {medium} channel {c}: {res.summary()}"
@@ -175,8 +204,9 @@ EMISSIVE = {
 }
 
 
+@pytest.mark.parametrize("flight", ["delta", "decomposition"])
 @pytest.mark.parametrize("case", list(EMISSIVE))
-def test_emissive_absorbing_slab(case, tmp_path):
+def test_emissive_absorbing_slab(case, flight, tmp_path):
     """Le (1 - exp(-sigma_t d)) through a slab of thickness d = 2 (t-test per channel)."""
     params, sigma = EMISSIVE[case]
     params = dict(params)
@@ -187,8 +217,8 @@ def test_emissive_absorbing_slab(case, tmp_path):
         params["to_world"] = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)
     Le = 1.5
     scene = emissive_slab(Le, **params)
-    img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "volpath_delta"}),
-                             seed=3, spp=256))
+    img = np.array(mi.render(scene, integrator=mi.load_dict(
+        {"type": "volpath_delta", "free_flight": flight}), seed=3, spp=256))
     for c in range(3):
         expected = Le * (1 - np.exp(-sigma[c] * 2.0))
         res = stats.t_test(img[..., c], expected)
@@ -212,7 +242,8 @@ def transmittance_samples(medium, method, n=1 << 16, seed=0):
     ray, length = segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T = estimators.transmittance(tracker, ray, mi.Float(length), sampler, method, mi.Bool(True))
+    T = estimators.TRANSMITTANCE_ESTIMATORS[method].transmittance(
+        tracker, ray, mi.Float(length), sampler, mi.Bool(True))
     dr.eval(T)
     return np.array(T)
 

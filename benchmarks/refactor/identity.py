@@ -31,14 +31,20 @@ for scene in ("furnace_env", "cornell_box"):
 HOT = [("smoke", {"type": "volpath_delta", "transmittance": tr}) for tr in ("track_length", "ratio", "residual")]
 mode, out = sys.argv[1], sys.argv[2]
 def make_hot():
-    import importlib
-    for name in ("mitsuba_plugins.tracking", "mitsuba_plugins.walk", "mitsuba_plugins.contract"):
-        try:
-            m = importlib.import_module(name)
-        except ImportError:
-            continue
-        if hasattr(m, "REFINE_OPTICAL_DEPTH"):
-            m.REFINE_OPTICAL_DEPTH = 0.5
+    """Every smoke cell hot (refined pieces, work budget)."""
+    try:
+        from mitsuba_plugins import instrument
+        instrument.settings.refine_optical_depth = 0.5
+    except ImportError:          # a checkout before the instrument module
+        import importlib
+        for name in ("mitsuba_plugins.tracking", "mitsuba_plugins.walk",
+                     "mitsuba_plugins.contract"):
+            try:
+                m = importlib.import_module(name)
+            except ImportError:
+                continue
+            if hasattr(m, "REFINE_OPTICAL_DEPTH"):
+                m.REFINE_OPTICAL_DEPTH = 0.5
 
 import os; os.makedirs(out, exist_ok=True)
 worst = 0
