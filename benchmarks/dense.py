@@ -42,7 +42,7 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-from surface import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from common import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 from volpath_delta import smooth_field  # noqa: E402
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 

@@ -30,7 +30,7 @@ from mitsuba_plugins import output
 import mitsuba as mi
 import numpy as np
 
-from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from common import cpu_model, status_mib, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ["smoke", "sparse", "chromatic"]
@@ -54,19 +54,12 @@ def bench_time(name, res, spp, runs):
             "time_ratio": med["grid_medium"] / med["heterogeneous"]}
 
 
-def _status_mib(field: str) -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no {field} in /proc/self/status")
-
-
 def _memory_child(kind: str, path: str) -> None:
     """Run in a fresh process: load + render; print the rise of peak RSS over the RSS
     before loading (MiB; the high-water mark is reset first, so import-time peaks do
     not hide the load) and the load time."""
     Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS
-    before = _status_mib("VmRSS")
+    before = status_mib("VmRSS")
     medium = {"grid_medium": {"type": "grid_medium", "filename": path, "scale": 20.0},
               "heterogeneous": {"type": "heterogeneous", "scale": 20.0,
                                 "sigma_t": {"type": "gridvolume", "filename": path}}}[kind]
@@ -80,7 +73,7 @@ def _memory_child(kind: str, path: str) -> None:
                 "to_world": mi.ScalarTransform4f().translate([0, 0, 5])}})
     load_s = time.perf_counter() - t0
     np.array(mi.render(scene, spp=4))
-    peak = _status_mib("VmHWM") - before
+    peak = status_mib("VmHWM") - before
     print(json.dumps({"peak_mib": peak, "load_s": load_s}))
 
 

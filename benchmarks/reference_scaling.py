@@ -33,7 +33,7 @@ from pathlib import Path
 import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 
-from surface import device_model  # noqa: E402  (benchmarks/ is on sys.path)
+from common import device_model  # noqa: E402  (benchmarks/ is on sys.path)
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()

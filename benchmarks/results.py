@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from surface import device_model  # noqa: E402  (benchmarks/ is on sys.path)
+from common import device_model, status_mib  # noqa: E402  (benchmarks/ is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -198,16 +198,7 @@ def scale_worker(config: dict) -> dict:
         times.append(time.perf_counter() - t0)
     return {"render_s": statistics.median(times[1:]), "first_render_s": times[0],
             "load_s": load_seconds,
-            "peak_rss_mb": peak_rss_mb()}
-
-
-def peak_rss_mb() -> float:
-    """This process's resident high-water mark (VmHWM; unlike ru_maxrss it is not
-    inherited from the parent across fork + exec)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+            "peak_rss_mb": status_mib("VmHWM")}
 
 
 def scale(quick: bool, tmp: Path) -> list:

@@ -68,13 +68,6 @@ def generate(n: int, folder: Path) -> tuple:
     return path, active
 
 
-def _hwm_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def worker(config: dict) -> dict:
     """One configuration in this fresh process."""
     import mitsuba_plugins  # noqa: F401
@@ -83,9 +76,9 @@ def worker(config: dict) -> dict:
     mi.set_variant(config["variant"])
     mi.set_log_level(mi.LogLevel.Error)
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from surface import timed_render
+    from common import status_mib, timed_render
     Path("/proc/self/clear_refs").write_text("5")      # VmHWM := current RSS
-    base = _hwm_mb()
+    base = status_mib("VmHWM")
     if config["medium"] == "heterogeneous":
         medium = {"type": "heterogeneous", "sigma_t": {
             "type": "gridvolume", "filename": config["file"], "use_grid_bbox": True},
@@ -98,7 +91,7 @@ def worker(config: dict) -> dict:
     scene = mi.load_dict(scene_dict(medium, RES, mi))
     dr.sync_thread()
     load_s = time.perf_counter() - t0
-    load_mb = _hwm_mb() - base
+    load_mb = status_mib("VmHWM") - base
     result = {**config, "load_s": load_s, "load_peak_mb": load_mb, "per_sample_s": {}}
     media = [s.interior_medium() for s in scene.shapes() if s.interior_medium() is not None]
     if getattr(media[0], "sparse", None) is not None:
@@ -112,7 +105,7 @@ def worker(config: dict) -> dict:
         timed_render(scene, integrator, SPP, 0)  # compiles
         times = [timed_render(scene, integrator, SPP, seed)[0] for seed in (1, 2, 3)]
         result["per_sample_s"][name] = statistics.median(times) / (RES * RES * SPP)
-    result["peak_mb"] = _hwm_mb() - base
+    result["peak_mb"] = status_mib("VmHWM") - base
     result["worker_peak_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     return result
 
@@ -197,7 +190,7 @@ def main() -> int:
     from mitsuba_plugins import gridio, output
     from mitsuba_plugins.registry import default_variant
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from surface import device_model
+    from common import device_model
     variant = default_variant()
     folder = Path(args.folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,7 @@ from mitsuba_plugins.registry import default_variant
 mi.set_variant(default_variant())
 mi.set_log_level(mi.LogLevel.Error)
 from cloud import scene_dict, write_npy  # noqa: E402  (benchmarks/ is on sys.path)
-from surface import timed_render  # noqa: E402
+from common import timed_render  # noqa: E402
 
 RES, SPP, RUNS = 256, 16, 5
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,10 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import statistics
-import subprocess
-import time
 from pathlib import Path
 
 import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
@@ -24,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from common import alternate, cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 from mitsuba_plugins import output
 from mitsuba_plugins.tools import stats
 from mitsuba_plugins.tools.compare import cached_reference
@@ -32,52 +30,6 @@ from mitsuba_plugins.tools.scenes import load_scene
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = [({"type": "direct_mis"}, {"type": "direct"}), ({"type": "path_rr"}, {"type": "path"})]
 SCENES = ["cornell_box", "veach_mis"]
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def device_model(variant: str) -> str:
-    """The processor that runs ``variant``: the GPU's name for a CUDA variant."""
-    if variant.startswith("cuda"):
-        try:
-            out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
-                                 capture_output=True, text=True, timeout=30).stdout.strip()
-            if out:
-                return out.splitlines()[0] + f" (host: {cpu_model()})"
-        except (OSError, subprocess.SubprocessError):
-            pass
-        return "NVIDIA GPU (nvidia-smi unavailable)"
-    return cpu_model()
-
-
-def timed_render(scene, integrator, spp, seed):
-    t0 = time.perf_counter()
-    img = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
-    dr.eval(img)
-    dr.sync_thread()
-    return time.perf_counter() - t0, np.array(img)
-
-
-def alternate(keys, runs: int, render):
-    """``runs`` rounds of ``render(key, run) -> (seconds, image)`` over ``keys``, in order
-    and reversed every other round so that drift hits every key alike; returns
-    ``(times, images)``, each a dict of per-run lists."""
-    keys = list(keys)
-    times, images = {k: [] for k in keys}, {k: [] for k in keys}
-    for run in range(runs):
-        for k in (keys if run % 2 == 0 else keys[::-1]):
-            t, img = render(k, run)
-            times[k].append(t)
-            images[k].append(img)
-    return times, images
 
 
 def bench_pair(scene_name, ours, builtin, spp, runs, res, ref_spp):

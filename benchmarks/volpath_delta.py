@@ -35,7 +35,7 @@ import mitsuba as mi
 import drjit as dr
 import numpy as np
 
-from surface import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from common import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU

@@ -36,7 +36,7 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-from surface import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from common import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
 
 mi.set_variant("llvm_ad_rgb")
 from mitsuba_plugins import output

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins.estimators import FREE_FLIGHTS, TRANSMITTANCE_ESTIMATORS
+from mitsuba_plugins.estimators import TRANSMITTANCE_ESTIMATORS
+from mitsuba_plugins.flights import FREE_FLIGHTS
 from mitsuba_plugins.scene_media import SceneMedia
 from mitsuba_plugins.validity import refuse_gradients
 from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
@@ -65,7 +66,7 @@ class VolpathDelta(VolumetricIntegrator):
     * heterogeneous media: delta tracking against the majorant grid of ``grid_medium``
       (the global majorant for other media), null-scattering formulation with spectral
       MIS over the hero channel for chromatic extinction (Miller, Georgiev and Jarosz
-      2019); see :class:`mitsuba_plugins.estimators.DeltaTracking`;
+      2019); see :class:`mitsuba_plugins.flights.DeltaTracking`;
     * emissive ``grid_medium``: :math:`\sigma_a L_e` collected at tentative collisions;
     * Russian roulette (Mitsuba's throughput rule, survival capped at ``rr_max_survival``)
       once per real event, never at null collisions; MIS (power heuristic) between emitter and phase/BSDF sampling using
@@ -111,7 +112,7 @@ class VolpathDelta(VolumetricIntegrator):
 class TrackingStrategy(VolumeStrategy):
     """The medium phase of ``volpath_delta``: analytic flights in homogeneous media (the
     base's), the ``flight`` rule (an entry of
-    :data:`~mitsuba_plugins.estimators.FREE_FLIGHTS`) in heterogeneous ones, shadow rays
+    :data:`~mitsuba_plugins.flights.FREE_FLIGHTS`) in heterogeneous ones, shadow rays
     by ``estimator``."""
 
     def __init__(self, flight, estimator):

@@ -22,6 +22,8 @@ def pytest_addoption(parser):
 def pytest_configure(config):
     mi.set_variant(VARIANT)
     config.addinivalue_line("markers", "llvm_only: tests Dr.Jit's LLVM backend itself")
+    if config.getoption("--jit-debug"):      # any backend (it once applied to CUDA only)
+        dr.set_flag(dr.JitFlag.Debug, True)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -31,8 +33,6 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "llvm_only" in item.keywords:
             item.add_marker(skip)
-    if config.getoption("--jit-debug"):
-        dr.set_flag(dr.JitFlag.Debug, True)
 
 
 @pytest.fixture(autouse=True)

@@ -49,6 +49,30 @@ def estimate(scene, integrator: dict, passes: int, spp: int, seed: int) -> stats
     return est
 
 
+#: estimates rendered in this test run (see :func:`cached_estimate`)
+_ESTIMATES: dict = {}
+
+
+def cached_estimate(key: str, scene, integrator: dict, passes: int, spp: int,
+                    seed: int = 0) -> stats.Estimate:
+    """:func:`estimate`, rendered once per test run for each ``key`` (the scene's
+    description: equal keys must mean equal scenes, e.g. ``load:smoke:32``), variant,
+    integrator, passes, spp and seed, however many tests use it (a reference most often).
+    ``scene``: the scene, or a function that makes it (called only when rendering).
+    Callers must not modify what it returns."""
+    k = (mi.variant(), key, json.dumps(integrator, sort_keys=True), passes, spp, seed)
+    if k not in _ESTIMATES:
+        _ESTIMATES[k] = estimate(scene() if callable(scene) else scene, integrator, passes,
+                                 spp, seed)
+    return _ESTIMATES[k]
+
+
+def loaded(name: str, res: int = RES):
+    """``(key, scene function)`` of a scene file of scenes/ at ``res`` (for
+    :func:`cached_estimate`)."""
+    return f"load:{name}:{res}", lambda: load(name, res=res)
+
+
 def render(scene, integrator=None, spp: int = 0, seed: int = 0) -> np.ndarray:
     """``mi.render`` as a float64 array, asserting zero NaN/Inf samples (counted in the
     kernel: ours by their sample guard, Mitsuba's through a counting wrapper) and finite

@@ -1,7 +1,6 @@
 """Majorant grid: cell bounds and the DDA, property-tested over thousands of random rays."""
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

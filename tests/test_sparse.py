@@ -179,19 +179,6 @@ def test_traverse_and_update(tmp_path):
     assert_same_render(a, b)
 
 
-@pytest.mark.parametrize("case", ["empty", "one_voxel"])
-def test_degenerate_sparse_grids_render_finite(tmp_path, case):
-    data = np.zeros((24, 24, 24, 1), np.float32)
-    if case == "one_voxel":
-        data[11, 12, 13] = 50.0
-    gridio.write_vol(tmp_path / "g.vol", data)
-    scene = media_scene(grid(filename=str(tmp_path / "g.vol"), storage="sparse"),
-                        sensor=camera(res=16))
-    for integrator in ("volpath_delta", "volpath_raymarch", "volpath"):
-        img = render(scene, {"type": integrator, "max_depth": 8}, spp=8)
-        assert np.all(np.isfinite(img)) and img.mean() > 0
-
-
 @pytest.mark.parametrize("integrator", ["volpath_delta", "volpath_raymarch", "volpath"])
 @pytest.mark.parametrize("scene_file", ["smoke", "sparse"])
 def test_sparse_renders_what_dense_renders(integrator, scene_file):

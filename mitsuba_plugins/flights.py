@@ -1,0 +1,205 @@
+"""Free-flight rules of the one walk (docs/method.md section 8): where a path's next real
+collision in a heterogeneous medium is, and what it weighs.
+
+* :class:`DeltaTracking`: the null-scattering formulation with spectral MIS for
+  chromatic extinction (Miller, Georgiev and Jarosz 2019, sec. 5; pbrt-v4's
+  ``VolPathIntegrator`` keeps the same ``r_u`` ratios);
+* :class:`DecompositionTracking`: a second exponential clock for the control extinction
+  (Kutz, Habel, Li and Novak 2017), a rule with a clock of its own.
+
+Both subclass :class:`mitsuba_plugins.estimators.NullCollisionRule`; they are listed by
+name in :data:`FREE_FLIGHTS` (``volpath_delta``'s ``free_flight`` parameter). A new
+free-flight estimator is one rule class here, its entry in the table and its tests.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.contract import index_channel, medium_interaction
+from mitsuba_plugins.estimators import FreeFlight, NullCollisionRule
+
+VARIANT = mi.variant()
+
+
+def spectral_decision(beta, r_u, hero, collide, real, p_real, p_null, sigma_s):
+    """Throughput and spectral-MIS ratios after a tentative collision that the hero
+    channel decided: real with per-channel decision densities ``p_real`` (then
+    ``beta`` takes ``sigma_s / p_real[h]``), null with ``p_null`` (``beta`` takes
+    ``p_null / p_null[h]``); ``r_u`` takes every channel's density over the hero's.
+    Both are then divided by ``mean(r_u)``, so ``beta`` *is* the effective throughput
+    and ``r_u[h]`` stays positive (Miller, Georgiev and Jarosz 2019). Returns
+    ``(beta, r_u)``, unchanged off ``collide``."""
+    p_real_h = index_channel(p_real, hero)
+    ratio = dr.select(real, p_real / p_real_h, p_null / index_channel(p_null, hero))
+    beta = dr.select(collide, beta * dr.select(real, sigma_s / p_real_h, ratio), beta)
+    r_u = dr.select(collide, r_u * ratio, r_u)
+    norm = dr.rcp(dr.mean(r_u))
+    return dr.select(collide, beta * norm, beta), dr.select(collide, r_u * norm, r_u)
+
+
+class DeltaState:
+    DRJIT_STRUCT = {"tau": mi.Float,          # optical depth to the next collision
+                    "beta": mi.Spectrum,      # throughput
+                    "r_u": mi.Spectrum,       # decision-pdf ratios (spectral MIS)
+                    "L_e": mi.Spectrum,       # medium emission collected
+                    "scattered": mi.Bool}     # stopped at a real collision
+
+    def __init__(self, tau=None, beta=None, r_u=None, L_e=None, scattered=None):
+        self.tau, self.beta, self.r_u, self.L_e, self.scattered = tau, beta, r_u, L_e, scattered
+
+
+class DeltaTracking(NullCollisionRule):
+    r"""Free flight: the next real collision (docs/method.md section 8). At a
+    tentative collision at ``x``:
+
+    * gray: real with probability ``sigma_t / sigma_maj``, weight ``sigma_s / sigma_t``;
+      null otherwise, weight 1.
+    * ``chromatic``: the hero channel ``h`` decides, real with probability
+      ``sigma_t[h] / sigma_maj``; ``beta`` gets ``sigma_s / sigma_t[h]`` (real) or
+      ``sigma_n / sigma_n[h]`` (null) and ``r_u`` the ratios of every channel's decision
+      pdf to the hero's. The path's contribution ``beta / mean(r_u)`` is the balance
+      heuristic over which channel was hero (one-sample MIS). After each collision
+      ``beta`` and ``r_u`` are divided by ``mean(r_u)``, so ``beta`` *is* the effective
+      throughput and ``r_u[h]`` stays positive.
+
+    With ``emission``, every tentative collision adds ``beta sigma_a Le / sigma_maj``
+    (its expectation is ``int T sigma_a Le dt``; section 6's convention). The walk
+    returns a :class:`FreeFlight`.
+    """
+    label = "delta_tracking"
+    budget = "beta"
+    flight = True
+
+    def __init__(self, beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, chromatic: bool,
+                 emission: bool):
+        self.beta, self.r_u, self.hero = beta, r_u, hero
+        self.chromatic, self.emission = chromatic, emission
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return DeltaState(-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(self.beta),
+                          mi.Spectrum(self.r_u), mi.Spectrum(0.0), mi.Bool(False))
+
+    def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
+        props = tracker.properties(medium_interaction(ray, t), collide)
+        sigma_t, sigma_s = props.sigma_t, props.sigma_s
+        sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
+        beta = state.beta
+        if self.emission:
+            state.L_e = dr.select(collide,
+                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / sigma_maj,
+                                  state.L_e)
+        u = sampler.next_1d(collide)
+        if self.chromatic:
+            real = collide & (u * sigma_maj < index_channel(sigma_t, self.hero))
+            state.beta, state.r_u = spectral_decision(beta, state.r_u, self.hero, collide, real,
+                                                      sigma_t, sigma_n, sigma_s)
+        else:
+            real = collide & (u * sigma_maj < sigma_t[0])
+            state.beta = dr.select(real, beta * (sigma_s / sigma_t), beta)
+        state.scattered |= real
+        return ~real
+
+    def finish(self, t, state, t_out, entered):
+        return FreeFlight(state.scattered, t, state.beta, state.r_u, state.L_e)
+
+
+class DecompositionState:
+    DRJIT_STRUCT = {"tau": mi.Float,          # residual optical depth to the next collision
+                    "tau_c": mi.Float,        # control optical depth to its collision
+                    "beta": mi.Spectrum,      # throughput
+                    "r_u": mi.Spectrum,       # decision-pdf ratios (spectral MIS)
+                    "L_e": mi.Spectrum,       # medium emission collected
+                    "scattered": mi.Bool}     # stopped at a real collision
+
+    def __init__(self, tau=None, tau_c=None, beta=None, r_u=None, L_e=None, scattered=None):
+        self.tau, self.tau_c, self.beta, self.r_u = tau, tau_c, beta, r_u
+        self.L_e, self.scattered = L_e, scattered
+
+
+#: With emission, decomposition keeps its control below this share of the majorant:
+#: emission is gathered at the residual's tentative collisions, which must not vanish
+#: where the medium emits.
+EMISSIVE_CONTROL_SHARE = 0.5
+
+
+class DecompositionTracking(DeltaTracking):
+    r"""Free flight by decomposition tracking (Kutz, Habel, Li and Novak 2017): the
+    extinction splits into a control :math:`\sigma_c` (gray, constant on a majorant
+    piece: its minorant, a lower bound of every channel) and a residual
+    :math:`\sigma_r = \sigma_t - \sigma_c \ge 0`. Collisions of the control come from
+    a clock of their own (one exponential optical depth spent at rate
+    :math:`\sigma_c`: no lookup decides them); the residual is delta-tracked against
+    :math:`\sigma_{maj} - \sigma_c`. The first real collision of either ends the flight,
+    and its weight is the scattering of that component over its density: the albedo
+    :math:`\sigma_s / \sigma_t` for both in a gray medium (the same estimator as delta
+    tracking, with :math:`\sigma_c / \sigma_{maj}` fewer lookups). Chromatic: the hero
+    decides the residual as :class:`DeltaTracking` decides it (densities
+    :math:`\sigma_r` real, :math:`\sigma_{maj} - \sigma_t` null); a control collision
+    has the same density in every channel, so it leaves ``r_u`` as it is and ``beta``
+    takes the albedo per channel. Emission is gathered at the residual's tentative
+    collisions (:math:`\beta \sigma_a L_e / (\sigma_{maj} - \sigma_c)`), the control
+    then kept below :data:`EMISSIVE_CONTROL_SHARE` of the majorant.
+    """
+    label = "decomposition_tracking"
+    control = True
+    clock = True
+
+    def control_extinction(self, tracker, seg) -> mi.Float:
+        # the segment's minorant times the tracker's factor that makes it a lower bound
+        # of every channel (a chromatic multiplier's minorant is the largest channel's)
+        sigma_c = seg.sigma_min * tracker.control_scale
+        if self.emission:
+            sigma_c = dr.minimum(sigma_c, EMISSIVE_CONTROL_SHARE * seg.sigma_maj)
+        return dr.minimum(sigma_c, seg.sigma_maj)
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        tau = -dr.log(1.0 - sampler.next_1d(active))
+        tau_c = -dr.log(1.0 - sampler.next_1d(active))
+        return DecompositionState(tau, tau_c, mi.Spectrum(self.beta), mi.Spectrum(self.r_u),
+                                  mi.Spectrum(0.0), mi.Bool(False))
+
+    def sample_clock(self, tracker, seg, t, step, state, active):
+        sigma_c = self.control_extinction(tracker, seg)
+        reach = dr.select(sigma_c > 0, state.tau_c / sigma_c, dr.inf)
+        ring = active & (reach < step)
+        step = dr.select(ring, reach, step)
+        state.tau_c = dr.select(active & ~ring, state.tau_c - sigma_c * step, state.tau_c)
+        return ring, step
+
+    def ring(self, tracker, ray, sampler, t, state, ring):
+        # a control collision's weight is the albedo: no density lookup (grid media)
+        albedo = tracker.albedo(medium_interaction(ray, t), ring)
+        state.beta = dr.select(ring, state.beta * albedo, state.beta)
+        state.scattered |= ring
+        return ~ring
+
+    def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
+        props = tracker.properties(medium_interaction(ray, t), collide)
+        sigma_t, sigma_s = props.sigma_t, props.sigma_s
+        sigma_c = sigma_maj - rate
+        sigma_r = dr.maximum(sigma_t - sigma_c, 0.0)
+        sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
+        beta = state.beta
+        if self.emission:
+            state.L_e = dr.select(collide,
+                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / rate,
+                                  state.L_e)
+        u = sampler.next_1d(collide)
+        if self.chromatic:
+            real = collide & (u * rate < index_channel(sigma_r, self.hero))
+            # the residual's scattering: its share of the medium's, sigma_s sigma_r / sigma_t
+            share = sigma_s * sigma_r / dr.select(sigma_t > 0, sigma_t, 1.0)
+            state.beta, state.r_u = spectral_decision(beta, state.r_u, self.hero, collide, real,
+                                                      sigma_r, sigma_n, share)
+        else:
+            real = collide & (u * rate < sigma_r[0])
+            state.beta = dr.select(real, beta * (sigma_s / sigma_t), beta)
+        state.scattered |= real
+        return ~real
+
+
+#: Free-flight estimators by name (``free_flight`` parameter of ``volpath_delta``); each
+#: is built per render as ``cls(beta, r_u, hero, chromatic, emission)``.
+FREE_FLIGHTS = {"delta": DeltaTracking, "decomposition": DecompositionTracking}
+
