@@ -1,7 +1,11 @@
-"""Registration follows variant switches; scalar variants say why they cannot work."""
+"""Registration follows variant switches; scalar variants say why they cannot work; the
+package's import graph (no circles, no tooling in the core); the ``--jit-debug`` option."""
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -113,3 +117,19 @@ def test_no_import_circles():
         if name not in state:
             visit(name, [name])
     assert circles == [], " ; ".join(" -> ".join(c) for c in circles)
+
+
+def test_jit_debug_flag_follows_the_option(pytestconfig):
+    """``--jit-debug`` turns on Dr.Jit's debug mode in every backend (issue 25: conftest
+    returned before reading it on LLVM); without it the mode is off."""
+    assert bool(dr.flag(dr.JitFlag.Debug)) == bool(pytestconfig.getoption("--jit-debug"))
+
+
+def test_jit_debug_option_reaches_llvm(tmp_path):
+    """The same test run with ``--jit-debug`` in a child pytest (LLVM by default)."""
+    here = Path(__file__).resolve()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--jit-debug",
+         f"{here}::test_jit_debug_flag_follows_the_option"],
+        capture_output=True, text=True, timeout=300, cwd=here.parents[1])
+    assert proc.returncode == 0 and "1 passed" in proc.stdout, proc.stdout[-2000:]
