@@ -7,7 +7,8 @@ import mitsuba as mi
 from mitsuba_plugins.estimators import TRANSMITTANCE_ESTIMATORS
 from mitsuba_plugins.flights import FREE_FLIGHTS
 from mitsuba_plugins.scene_media import SceneMedia
-from mitsuba_plugins.validity import refuse_gradients
+from mitsuba_plugins import differentiable
+from mitsuba_plugins.replay import GRADIENT_ESTIMATORS
 from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
 from mitsuba_plugins.walk import walk
 
@@ -17,6 +18,8 @@ VARIANT = mi.variant()
 #: residual-ratio-tracked shadow rays and the roulette's survival capped at 0.99.
 DEFAULT_TRANSMITTANCE = "residual"
 DEFAULT_FREE_FLIGHT = "delta"
+#: Chosen on benchmarks/results/gradients.md (efficiency of directional derivatives).
+DEFAULT_GRADIENT_ESTIMATOR = "drt"
 
 
 class VolpathDelta(VolumetricIntegrator):
@@ -54,6 +57,14 @@ class VolpathDelta(VolumetricIntegrator):
          tracking with roulette below 0.1), ``residual`` (residual ratio tracking, the
          majorant grid's per-cell minorant as control) or ``track_length``.
          (Default: ``residual``)
+     * - gradient_estimator
+       - |string|
+       - How derivatives of transmittance are estimated in gradient renders
+         (``mi.render`` with differentiable parameters): ``drt`` (differential
+         tracking: minus the optical depth's derivative at points of a second random
+         stream, Nimier-David et al. 2022) or ``delta`` (differentiate the
+         delta-tracking estimator as ``prbvolpath`` does: null collisions weigh
+         ``sigma_n(theta) / sigma_n``). Primal renders do not use it. (Default: ``drt``)
      * - hide_emitters
        - |bool|
        - Hide emitters seen directly (also through media). (Default: false)
@@ -89,16 +100,16 @@ class VolpathDelta(VolumetricIntegrator):
     real/null decisions (Miller et al. 2019, eq. 24).
     """
 
-    render_forward, render_backward = refuse_gradients("volpath_delta", "prbvolpath")
-
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
         self.transmittance = p.choice("transmittance", DEFAULT_TRANSMITTANCE,
                                       tuple(TRANSMITTANCE_ESTIMATORS))
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
+        self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
+                                           GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
                                          TRANSMITTANCE_ESTIMATORS[self.transmittance])
 
@@ -106,7 +117,22 @@ class VolpathDelta(VolumetricIntegrator):
         return (f"VolpathDelta[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
                 f"  free_flight = {self.free_flight},\n"
                 f"  transmittance = {self.transmittance},\n"
+                f"  gradient_estimator = {self.gradient_estimator},\n"
                 f"  hide_emitters = {self.hide_emitters}\n]")
+
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        return differentiable.render_forward(self, scene, params, sensor, seed, spp)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        return differentiable.render_backward(self, scene, params, grad_in, sensor, seed, spp)
+
+    def check_gradients(self) -> None:
+        """Refuse gradient renders of settings whose derivatives are not implemented."""
+        if self.free_flight != "delta":
+            raise NotImplementedError(
+                f"volpath_delta: gradients need free_flight = 'delta' (got "
+                f"'{self.free_flight}'); the primal image is the same estimate")
 
 
 class TrackingStrategy(VolumeStrategy):
@@ -123,7 +149,8 @@ class TrackingStrategy(VolumeStrategy):
 
     def heterogeneous_flight(self, ctx, tracker, ray, t_max, beta, r_u, nee, active):
         media = ctx.media
-        rule = self.flight(beta, r_u, ctx.hero, media.chromatic_heterogeneous, media.emission)
+        rule = self.flight(beta, r_u, ctx.hero, media.chromatic_heterogeneous, media.emission,
+                           ctx.replay, ctx.remaining)
         return walk(tracker, ray, t_max, ctx.sampler, rule, active)
 
 

@@ -115,7 +115,9 @@ class GridMedium(mi.Medium):
 
     ``mi.traverse`` exposes ``scale``, ``sigma_t`` (the multiplier), ``albedo``,
     ``emission`` and the phase function's parameters; with dense storage also ``data``,
-    the grid tensor (same shape; the majorants are rebuilt on update). Sparse storage
+    the grid tensor (same shape; the majorants are rebuilt on update). All are
+    differentiable with ``volpath_delta`` (``sigma_t`` in RGB variants only; ``data``
+    and ``albedo`` also with ``prbvolpath``). Sparse storage
     does not expose its pool: changing voxel values would change which bricks exist.
     """
 
@@ -326,11 +328,12 @@ class GridMedium(mi.Medium):
         return radiance
 
     def traverse(self, callback):
-        flags = mi.ParamFlags.NonDifferentiable
-        callback.put("scale", self.scale, flags)
+        callback.put("scale", self.scale, mi.ParamFlags.Differentiable)
         self.store.traverse(callback)
         if self.filename is not None:
-            callback.put("sigma_t", self.sigma_t_factor, flags)
+            # differentiable in RGB variants; elsewhere it is upsampled / reduced on the host
+            callback.put("sigma_t", self.sigma_t_factor, mi.ParamFlags.Differentiable
+                         if mi.is_rgb else mi.ParamFlags.NonDifferentiable)
         callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
         if self.emission is not None:
             callback.put("emission", self.emission, mi.ParamFlags.Differentiable)

@@ -42,12 +42,14 @@ def sample_exponential(u: mi.Float, rate: mi.Float) -> mi.Float:
 class FreeFlight:
     """Outcome of a flight: whether it ``scattered`` (at ``t``; else it reached the
     end), the throughput ``beta`` and spectral-MIS ratios ``r_u`` after it, and the
-    medium light ``L_e`` gathered on the way (already times ``beta``)."""
+    medium light ``L_e`` gathered on the way (already times ``beta``); in a gradient
+    replay the forward-mode tangent ``grad`` its weights add (0 otherwise)."""
     DRJIT_STRUCT = {"scattered": mi.Bool, "t": mi.Float, "beta": mi.Spectrum,
-                    "r_u": mi.Spectrum, "L_e": mi.Spectrum}
+                    "r_u": mi.Spectrum, "L_e": mi.Spectrum, "grad": mi.Spectrum}
 
-    def __init__(self, scattered=None, t=None, beta=None, r_u=None, L_e=None):
+    def __init__(self, scattered=None, t=None, beta=None, r_u=None, L_e=None, grad=None):
         self.scattered, self.t, self.beta, self.r_u, self.L_e = scattered, t, beta, r_u, L_e
+        self.grad = mi.Spectrum(0.0) if grad is None else grad
 
 
 # -- homogeneous media ----------------------------------------------------------------
@@ -132,7 +134,7 @@ class NullCollisionRule:
         collide = active & (state.tau < seg_tau)
         step = dr.select(collide, state.tau / rate, seg.t_end - t)
         if not self.clock:
-            self.travel(state, seg, step, active)
+            self.travel(tracker, ray, t, state, seg, step, active)
             t = dr.select(active, dr.select(collide, t + step, seg.t_end), t)
             state.tau = dr.select(active & ~collide, state.tau - seg_tau, state.tau)
         else:
@@ -140,7 +142,7 @@ class NullCollisionRule:
             # collisions' clock keeps the optical depth it has not spent
             ring, step = self.sample_clock(tracker, seg, t, step, state, active)
             collide &= ~ring
-            self.travel(state, seg, step, active)
+            self.travel(tracker, ray, t, state, seg, step, active)
             t = dr.select(active, dr.select(collide | ring, t + step, seg.t_end), t)
             spent = dr.select(rate > 0, rate * step, 0.0)
             state.tau = dr.select(active & ~collide, state.tau - spent, state.tau)
@@ -156,8 +158,9 @@ class NullCollisionRule:
         state.tau = dr.select(redraw, -dr.log(1.0 - sampler.next_1d(redraw)), state.tau)
         return t, state, active
 
-    def travel(self, state, seg, step, active) -> None:
-        """Weight for travelling ``step`` without a tentative collision (none by default)."""
+    def travel(self, tracker, ray, t, state, seg, step, active) -> None:
+        """Weight for travelling ``step`` from ``t`` without a tentative collision (none by
+        default)."""
 
     def sample_clock(self, tracker, seg, t, step, state, active):
         """``(ring, step)``: whether the rule's clock rings within ``step`` of ``t`` on the
@@ -217,7 +220,7 @@ class ResidualRatioTracking(RatioTracking):
     label = "residual_tracking"
     control = True
 
-    def travel(self, state, seg, step, active):
+    def travel(self, tracker, ray, t, state, seg, step, active):
         state.T = dr.select(active, state.T * dr.exp(-seg.sigma_min * step), state.T)
 
 

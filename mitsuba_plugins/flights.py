@@ -18,6 +18,7 @@ import mitsuba as mi
 
 from mitsuba_plugins.contract import index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, NullCollisionRule
+from mitsuba_plugins.replay import attached, interval_optical_depth
 
 VARIANT = mi.variant()
 
@@ -49,6 +50,15 @@ class DeltaState:
         self.tau, self.beta, self.r_u, self.L_e, self.scattered = tau, beta, r_u, L_e, scattered
 
 
+class ReplayDeltaState(DeltaState):
+    """:class:`DeltaState` in a gradient replay: plus the forward-mode tangent."""
+    DRJIT_STRUCT = dict(DeltaState.DRJIT_STRUCT, grad=mi.Spectrum)
+
+    def __init__(self, tau=None, beta=None, r_u=None, L_e=None, scattered=None, grad=None):
+        super().__init__(tau, beta, r_u, L_e, scattered)
+        self.grad = grad
+
+
 class DeltaTracking(NullCollisionRule):
     r"""Free flight: the next real collision (docs/method.md section 8). At a
     tentative collision at ``x``:
@@ -66,19 +76,50 @@ class DeltaTracking(NullCollisionRule):
     With ``emission``, every tentative collision adds ``beta sigma_a Le / sigma_maj``
     (its expectation is ``int T sigma_a Le dt``; section 6's convention). The walk
     returns a :class:`FreeFlight`.
+
+    ``replay`` (a :class:`~mitsuba_plugins.replay.Replay`, gradients only) with
+    ``remaining``, the radiance the path gathers from the flight's start on: each step
+    and collision also propagates the derivative of its weight
+    (:mod:`mitsuba_plugins.replay`).
     """
     label = "delta_tracking"
     budget = "beta"
     flight = True
 
     def __init__(self, beta: mi.Spectrum, r_u: mi.Spectrum, hero: mi.UInt32, chromatic: bool,
-                 emission: bool):
+                 emission: bool, replay=None, remaining: mi.Spectrum = None):
         self.beta, self.r_u, self.hero = beta, r_u, hero
         self.chromatic, self.emission = chromatic, emission
+        self.replay, self.remaining = replay, remaining
 
     def start(self, tracker, ray, t_in, t_out, sampler, active):
-        return DeltaState(-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(self.beta),
-                          mi.Spectrum(self.r_u), mi.Spectrum(0.0), mi.Bool(False))
+        state = (-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(self.beta),
+                 mi.Spectrum(self.r_u), mi.Spectrum(0.0), mi.Bool(False))
+        if self.replay is None:
+            return DeltaState(*state)
+        return ReplayDeltaState(*state, mi.Spectrum(0.0))
+
+    def travel(self, tracker, ray, t, state, seg, step, active):
+        # drt: the transmittance of the step, in front of all gathered after it
+        if self.replay is not None and self.replay.estimator == "drt":
+            moving = active & (step > 0)
+            tau = interval_optical_depth(self.replay, tracker, ray, t, step, moving)
+            state.grad += self.replay.transmittance(tau, self.remaining - state.L_e, moving)
+
+    def replay_collision(self, tracker, ray, t, sigma_maj, beta, state, collide, real):
+        """The derivative of a tentative collision's weights: the light it gathers,
+        then the real collision's ``sigma_s`` (or, ``delta``, the null's ``sigma_n``)
+        in front of all gathered after it."""
+        replay = self.replay
+        props = attached(lambda: tracker.properties(medium_interaction(ray, t), collide))
+        if self.emission:
+            state.grad += replay.emit(attached(
+                lambda: beta * (props.sigma_t - props.sigma_s) * props.Le / sigma_maj), collide)
+        after = self.remaining - state.L_e
+        state.grad += replay.factor(props.sigma_s, after, real)
+        if replay.estimator == "delta":
+            sigma_n = attached(lambda: dr.maximum(sigma_maj - props.sigma_t, 0.0))
+            state.grad += replay.factor(sigma_n, after, collide & ~real)
 
     def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
         props = tracker.properties(medium_interaction(ray, t), collide)
@@ -97,11 +138,14 @@ class DeltaTracking(NullCollisionRule):
         else:
             real = collide & (u * sigma_maj < sigma_t[0])
             state.beta = dr.select(real, beta * (sigma_s / sigma_t), beta)
+        if self.replay is not None:
+            self.replay_collision(tracker, ray, t, sigma_maj, beta, state, collide, real)
         state.scattered |= real
         return ~real
 
     def finish(self, t, state, t_out, entered):
-        return FreeFlight(state.scattered, t, state.beta, state.r_u, state.L_e)
+        grad = state.grad if self.replay is not None else None
+        return FreeFlight(state.scattered, t, state.beta, state.r_u, state.L_e, grad)
 
 
 class DecompositionState:

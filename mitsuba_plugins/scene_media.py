@@ -119,17 +119,51 @@ class SceneMedia:
         return self.dispatch(medium, active, mi.Spectrum(1.0), analytic, estimated)
 
 
-@dr.syntax
 def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction3f,
                          ds: mi.DirectionSample3f, medium: mi.MediumPtr, sampler: mi.Sampler,
                          estimator, active: mi.Bool) -> mi.Spectrum:
     """Transmittance from ``ref`` to the emitter sample ``ds`` through media and
     index-matched (``null``) surfaces; any other surface blocks (as in Mitsuba's
     ``volpath``, a surface passes ``eval_null_transmission``)."""
+    return shadow_pieces(scene, ref, ds, medium, TransmittancePass(media, estimator), sampler,
+                         active)
+
+
+class TransmittancePass:
+    """What :func:`shadow_pieces` does on a shadow ray's pieces: multiply the
+    transmittance estimates (``value``, from 1) and the null surfaces' transmission;
+    stops where it is 0."""
+
+    def __init__(self, media, estimator):
+        self.media, self.estimator = media, estimator
+
+    def initial(self):
+        return mi.Spectrum(1.0)
+
+    def piece(self, value, medium, ray, t_piece, sampler, active):
+        value[active] *= self.media.transmittance(medium, ray, t_piece, sampler,
+                                                  self.estimator, active)
+        return value
+
+    def surface(self, value, si, bsdf, hit):
+        value[hit] *= bsdf.eval_null_transmission(si, hit)
+        return value
+
+    def goes_on(self, value):
+        return dr.any(value != 0)
+
+
+@dr.syntax
+def shadow_pieces(scene: mi.Scene, ref: mi.Interaction3f, ds: mi.DirectionSample3f,
+                  medium: mi.MediumPtr, what, sampler, active: mi.Bool):
+    """The pieces of the shadow ray from ``ref`` to ``ds``, medium by medium through
+    index-matched surfaces: ``what`` (:class:`TransmittancePass`, or the gradient pass of
+    :mod:`mitsuba_plugins.replay`) says what happens on each, drawing from ``sampler``
+    (an argument, so that the loop carries its state); returns its value."""
     # ------------------------------ loop state ------------------------------
     ray = ref.spawn_ray(ds.d)                                 # current shadow-ray piece
     remaining = ds.dist * (1.0 - mi.math.ShadowEpsilon)       # distance left to the emitter
-    T = mi.Spectrum(1.0)                                      # transmittance so far
+    value = what.initial()                                    # e.g. transmittance so far
     medium = mi.MediumPtr(medium)                             # medium of the current piece
     active = mi.Bool(active)
 
@@ -137,13 +171,12 @@ def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction
         ray.maxt = remaining
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         count("intersections", active)
-        T[active] *= media.transmittance(medium, ray, dr.minimum(si.t, remaining), sampler,
-                                         estimator, active)
+        value = what.piece(value, medium, ray, dr.minimum(si.t, remaining), sampler, active)
         hit = active & si.is_valid()
         bsdf = si.bsdf(ray)
-        T[hit] *= bsdf.eval_null_transmission(si, hit)
+        value = what.surface(value, si, bsdf, hit)
         medium[hit & si.is_medium_transition()] = si.target_medium(ray.d)
         remaining[hit] = remaining - si.t
         ray[hit] = si.spawn_ray(ray.d)
-        active = hit & dr.any(T != 0) & (remaining > 0)
-    return T
+        active = hit & what.goes_on(value) & (remaining > 0)
+    return value

@@ -16,6 +16,7 @@ from mitsuba_plugins.contract import Tracker, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
+from mitsuba_plugins.replay import attached, replay_homogeneous, replay_vertex
 from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
 from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
 from mitsuba_plugins.instrument import count, settings
@@ -26,11 +27,20 @@ VARIANT = mi.variant()
 class VolumeContext:
     """What the medium phase of a path needs besides its loop state, for one render:
     the scene, its media, emitter selection, sampler, phase-function context, hero
-    channel and shadow-ray transmittance estimator. A plain holder, never loop state."""
+    channel and shadow-ray transmittance estimator. A plain holder, never loop state.
+    In a gradient replay also the :class:`~mitsuba_plugins.replay.Replay` and, set at
+    each vertex, ``remaining``: the radiance the path gathers from there on."""
 
-    def __init__(self, scene, media, emitters, sampler, phase_ctx, hero, estimator):
+    def __init__(self, scene, media, emitters, sampler, phase_ctx, hero, estimator,
+                 replay=None):
         self.scene, self.media, self.emitters, self.sampler = scene, media, emitters, sampler
         self.phase_ctx, self.hero, self.estimator = phase_ctx, hero, estimator
+        self.replay, self.remaining = replay, None
+
+    def at_vertex(self, remaining: mi.Spectrum) -> None:
+        """Set ``remaining`` (a call, not an assignment: the path loop must not take
+        this holder for loop state)."""
+        self.remaining = remaining
 
 
 class VolumeStrategy:
@@ -68,9 +78,13 @@ def analytic_flight(ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f, t_m
     chromatic = ctx.media.chromatic_homogeneous
     t, scattered, weight, r_u_new = homogeneous_free_flight(
         mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), chromatic, ctx.hero, r_u)
+    grad = None
+    if ctx.replay is not None:
+        grad = replay_homogeneous(ctx.replay, medium, ray, dr.select(scattered, t, t_max),
+                                  ctx.remaining, active, active & scattered)
     return FreeFlight(active & scattered, t,
                       beta * dr.select(scattered, mi.Spectrum(sigma_s) * weight, weight),
-                      r_u_new if chromatic else r_u, mi.Spectrum(0.0))
+                      r_u_new if chromatic else r_u, mi.Spectrum(0.0), grad)
 
 
 def free_flight(ctx: VolumeContext, strategy: VolumeStrategy, medium: mi.MediumPtr,
@@ -105,11 +119,15 @@ class VolumetricIntegrator(PathIntegrator):
 
 @dr.syntax
 def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool):
+                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None):
     """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
     real collision in a medium or a surface (null surfaces included). ``integrator``
     supplies the settings (as in :func:`~mitsuba_plugins.paths.trace_surfaces`),
-    ``strategy`` the medium phase (:class:`VolumeStrategy`)."""
+    ``strategy`` the medium phase (:class:`VolumeStrategy`).
+
+    ``replay`` (:class:`~mitsuba_plugins.replay.Replay`): the same path again,
+    propagating derivatives (:mod:`mitsuba_plugins.replay`); returns ``(L, valid_ray,
+    tangent)``, the tangent being 0 in backward mode."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -119,7 +137,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         n = dr.size_v(mi.Spectrum)
         hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
     ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
-                        strategy.shadow_estimator(media))
+                        strategy.shadow_estimator(media), replay)
 
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -135,6 +153,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_pdf = mi.Float(1.0)                         # p_b / phase pdf of the direction
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
+    grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
@@ -142,12 +161,16 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         count("intersections", active)
 
         # ------------------- free flight through the medium -------------------
+        if dr.hint(replay is not None, mode="scalar"):
+            ctx.at_vertex(replay.L_primal - L)
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
                                   depth + 1 < max_depth, active)
         beta = flight.beta
         r_u = flight.r_u
         scattered = flight.scattered
         t_s = flight.t
+        if dr.hint(replay is not None, mode="scalar"):
+            grad += flight.grad
         if dr.hint(strategy.gathers_light(media), mode="scalar"):
             L += flight.L_e
             valid_ray |= dr.any(flight.L_e != 0)
@@ -198,6 +221,19 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         p_dir = dr.select(scattered, phase_pdf, p_b)
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
                                                          wo, f_l, p_dir), L)
+        if dr.hint(replay is not None, mode="scalar"):
+            grad += replay_vertex(
+                replay, scene, media, ref, ds, shadow_medium,
+                dr.select(active_em, beta * emitter_contribution(
+                    integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir), 0.0),
+                attached(lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
+                    phase_ctx, mei, ds.d, scattered)[0]), bsdf.eval(bsdf_ctx, si, wo,
+                                                                    on_surface))),
+                active_em, attached(lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
+                    phase_ctx, mei, wo_phase, scattered)[0]), bsdf.eval(
+                        bsdf_ctx, si, bs.wo, on_surface))),
+                replay.L_primal - L, active_next & (scattered | (on_surface & ~mi.has_flag(
+                    bs.sampled_type, mi.BSDFFlags.Delta))))
 
         # ------------------------- throughput update -------------------------
         null = on_surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -226,4 +262,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         active = alive & (real | null) & (depth < max_depth)
         active &= ~(scattered & (phase_pdf_s <= 0))
 
+    if dr.hint(replay is not None, mode="scalar"):
+        return dr.select(valid_ray, L, 0.0), valid_ray, dr.select(valid_ray, grad, 0.0)
     return dr.select(valid_ray, L, 0.0), valid_ray

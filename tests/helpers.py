@@ -124,9 +124,10 @@ def camera(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None, target=(0.0, 
     return cam
 
 
-def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4):
+def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4, as_dict=False):
     """A unit sphere holding ``medium`` behind ``bsdf`` (null by default) over a
-    diffuse floor, lit by a small spherical light and a constant environment."""
+    diffuse floor, lit by a small spherical light and a constant environment (loaded,
+    or its description with ``as_dict``)."""
     scene = {
         "type": "scene",
         "env": {"type": "constant", "radiance": {"type": "rgb", "value": env}},
@@ -141,7 +142,7 @@ def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4):
     if medium is not None:
         scene["ball"] = {"type": "sphere", "bsdf": bsdf or {"type": "null"}, "interior": medium}
     scene.update(extra or {})
-    return mi.load_dict(scene)
+    return scene if as_dict else mi.load_dict(scene)
 
 
 def homogeneous(sigma_t, albedo=0.8, g=None):

@@ -1,0 +1,308 @@
+"""Issue 26: volpath_delta's gradients against Mitsuba's prbvolpath.
+
+* ``efficiency``: 1 / (variance of a directional derivative x time of one gradient
+  render) on media of several optical depths, ours (``drt``, ``delta``) against
+  prbvolpath; one process, a warm-up render each, alternating runs.
+* ``memory``: peak resident memory of one backward render at max_depth 8 and 256 (albedo
+  0.99, so paths are long), each in a fresh process.
+* ``reconstruct``: a density grid (the smoke, resampled to 32^3) from 8 views with
+  ``mi.ad.Adam``, ours against prbvolpath at equal wall time: loss and relative L2 error
+  of the grid over time; and an emission grid (prbvolpath ignores emission) with ours.
+
+Run from the repository root: ``python3 benchmarks/inverse.py [--part P] [--quick]``.
+Results: benchmarks/results/inverse.{md,json}, plots docs/results/inverse_*.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import mitsuba_plugins  # noqa: E402,F401  -- picks libLLVM first
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mitsuba_plugins.registry import default_variant  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+PLOTS = ROOT / "docs" / "results"
+METHODS = {"drt": {"type": "volpath_delta", "gradient_estimator": "drt"},
+           "delta": {"type": "volpath_delta", "gradient_estimator": "delta"},
+           "prbvolpath": {"type": "prbvolpath"}}
+
+
+def smoke_scene(scale: float, res: int = 16, albedo: float = 0.85):
+    from helpers import camera, grid, media_scene
+    return media_scene(grid(scale=scale, albedo=albedo), sensor=camera(res=res))
+
+
+def density_key(params) -> str:
+    return next(k for k in params.keys() if k.endswith("interior_medium.data"))
+
+
+# -- efficiency --------------------------------------------------------------------------
+def efficiency(quick: bool) -> dict:
+    from mitsuba_plugins.tools import gradcheck
+    from test_gradients import smooth_direction
+    runs = 6 if quick else 16
+    out = {}
+    for label, scale in (("thin (scale 2)", 2.0), ("smoke (scale 8)", 8.0),
+                         ("dense (scale 40)", 40.0)):
+        scene = smoke_scene(scale)
+        params = mi.traverse(scene)
+        key = density_key(params)
+        direction = {key: smooth_direction(np.array(params[key]).shape) * np.array(params[key])}
+        integrators = {m: mi.load_dict(dict(d, max_depth=16)) for m, d in METHODS.items()}
+        values = {m: [] for m in METHODS}
+        times = {m: [] for m in METHODS}
+        for m in METHODS:   # warm-up: compile every kernel once
+            gradcheck.backward_derivatives(scene, params, direction, integrators[m], 1000, 16)
+        for run in range(runs):
+            for m in (list(METHODS) if run % 2 == 0 else list(METHODS)[::-1]):
+                t0 = time.perf_counter()
+                d = gradcheck.backward_derivatives(scene, params, direction, integrators[m],
+                                                   run, 16)[key]
+                times[m].append(time.perf_counter() - t0)
+                values[m].append(d)
+        row = {}
+        for m in METHODS:
+            var = float(np.var(values[m], ddof=1))
+            t = float(np.median(times[m]))
+            row[m] = {"mean": float(np.mean(values[m])), "std": float(np.sqrt(var)),
+                      "seconds": t, "efficiency": 1.0 / (var * t) if var > 0 else float("inf")}
+        for m in ("drt", "delta"):
+            row[m]["vs_prbvolpath"] = row[m]["efficiency"] / row["prbvolpath"]["efficiency"]
+        out[label] = row
+        print(label, json.dumps({m: round(r.get("vs_prbvolpath", 1.0), 2)
+                                 for m, r in row.items()}), flush=True)
+    return out
+
+
+# -- memory ------------------------------------------------------------------------------
+def memory_child(depth: int) -> None:
+    from common import status_mib
+    scene = smoke_scene(8.0, res=64, albedo=0.99)
+    params = mi.traverse(scene)
+    key = density_key(params)
+    dr.enable_grad(params[key])
+    params.update()
+    integrator = mi.load_dict({"type": "volpath_delta", "max_depth": depth})
+    before = status_mib("VmHWM")
+    img = mi.render(scene, params, integrator=integrator, spp=16, seed=0)
+    dr.backward(dr.mean(img, axis=None))
+    dr.eval(dr.grad(params[key]))
+    dr.sync_thread()
+    print(json.dumps({"depth": depth, "before_mib": before, "peak_mib": status_mib("VmHWM")}))
+
+
+def memory() -> dict:
+    out = {}
+    for depth in (8, 256):
+        result = subprocess.run([sys.executable, __file__, "--memory-child", str(depth)],
+                                capture_output=True, text=True, check=True)
+        out[depth] = json.loads(result.stdout.strip().splitlines()[-1])
+    out["ratio_256_over_8"] = out[256]["peak_mib"] / out[8]["peak_mib"]
+    print("memory", json.dumps(out), flush=True)
+    return out
+
+
+# -- reconstruction ----------------------------------------------------------------------
+def ring_sensors(n: int, res: int, radius: float = 4.0):
+    from helpers import camera
+    sensors = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        origin = (radius * np.sin(a), 0.8 if i % 2 else -0.2, radius * np.cos(a))
+        sensors.append(mi.load_dict(camera(res=res, origin=origin)))
+    return sensors
+
+
+def resampled_smoke(resolution: int) -> np.ndarray:
+    from scipy.ndimage import zoom
+    from mitsuba_plugins import gridio
+    from helpers import SMOKE
+    data = gridio.read_grid(SMOKE)[0][..., :1]
+    factor = resolution / data.shape[0]
+    return np.clip(zoom(data[..., 0], factor, order=1), 0, None)[..., None].astype(np.float32)
+
+
+def reconstruct(method: str, budget: float, views: int, res: int, spp: int,
+                resolution: int, emission: bool = False) -> dict:
+    """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
+    for ``budget`` seconds of wall time (rendering the references excluded)."""
+    import tempfile
+    from helpers import media_scene
+    from mitsuba_plugins import gridio
+    true = resampled_smoke(resolution)
+    tmp = tempfile.mkdtemp()
+    path = os.path.join(tmp, "truth.vol")
+    gridio.write_vol(path, true)
+    medium = {"type": "grid_medium", "filename": path, "scale": 8.0, "albedo": 0.85,
+              "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}
+    if emission:
+        em_path = os.path.join(tmp, "emission.vol")
+        gridio.write_vol(em_path, (true * 4.0).astype(np.float32))
+        medium["emission"] = {"type": "gridvolume", "filename": em_path,
+                              "to_world": medium["to_world"]}
+        medium["scale"] = 3.0
+    scene = media_scene(medium, env=0.1)
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith(
+        "emission.data" if emission else "interior_medium.data"))
+    truth = mi.TensorXf(params[key])
+    sensors = ring_sensors(views, res)
+    ref_integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 8})
+    references = [mi.render(scene, sensor=s, integrator=ref_integrator, spp=256, seed=7)
+                  for s in sensors]
+    start = float(np.mean(np.array(truth)))
+    params[key] = dr.full(mi.TensorXf, start, truth.shape)
+    params.update()
+    opt = mi.ad.Adam(lr=0.02 if not emission else 0.1)
+    opt[key] = params[key]
+    params.update(opt)
+    integrator = mi.load_dict(dict(METHODS[method], max_depth=8))
+    history, t0, it = [], time.perf_counter(), 0
+    norm = float(dr.sqrt(dr.sum(dr.square(truth), axis=None)).array[0])
+    while time.perf_counter() - t0 < budget:
+        loss_total = 0.0
+        for v, sensor in enumerate(sensors):
+            img = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp,
+                            seed=it * views + v)
+            loss = dr.mean(dr.square(img - references[v]), axis=None)
+            dr.backward(loss)
+            loss_total += float(loss.array[0]) / views
+        opt.step()
+        opt[key] = dr.maximum(opt[key], 0.0)
+        params.update(opt)
+        error = float(dr.sqrt(dr.sum(dr.square(params[key] - truth), axis=None)).array[0]) / norm
+        history.append({"seconds": time.perf_counter() - t0, "loss": loss_total,
+                        "error": error})
+        it += 1
+    print(method, "emission" if emission else "density", f"{it} iterations, final loss "
+          f"{history[-1]['loss']:.3e}, error {history[-1]['error']:.3f}", flush=True)
+    return {"iterations": it, "history": history}
+
+
+def time_to_reach(history, loss: float, window: int = 3) -> float:
+    """Seconds until the running mean of ``window`` iterations' losses first reaches
+    ``loss`` (inf if never)."""
+    losses = np.array([h["loss"] for h in history])
+    for i in range(window - 1, len(losses)):
+        if losses[i - window + 1:i + 1].mean() <= loss:
+            return history[i]["seconds"]
+    return float("inf")
+
+
+def reconstruction(quick: bool) -> dict:
+    budget = 40.0 if quick else 240.0
+    out = {}
+    for method in ("drt", "prbvolpath"):
+        out[method] = reconstruct(method, budget, views=8, res=32, spp=4, resolution=32)
+    final = np.mean([h["loss"] for h in out["prbvolpath"]["history"][-3:]])
+    out["prbvolpath_final_loss"] = float(final)
+    out["ours_time_to_prbvolpath_final_loss"] = time_to_reach(out["drt"]["history"], final)
+    out["prbvolpath_seconds"] = out["prbvolpath"]["history"][-1]["seconds"]
+    out["emission_drt"] = reconstruct("drt", budget / 2, views=4, res=32, spp=4,
+                                      resolution=16, emission=True)
+    return out
+
+
+def plot(results: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rec = results.get("reconstruct")
+    if not rec:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for method in ("drt", "prbvolpath"):
+        h = rec[method]["history"]
+        t = [x["seconds"] for x in h]
+        axes[0].semilogy(t, [x["loss"] for x in h], label=method)
+        axes[1].plot(t, [x["error"] for x in h], label=method)
+    axes[0].set(xlabel="seconds", ylabel="loss (MSE over 8 views)")
+    axes[1].set(xlabel="seconds", ylabel="relative L2 error of the density")
+    axes[0].legend()
+    fig.tight_layout()
+    PLOTS.mkdir(parents=True, exist_ok=True)
+    fig.savefig(PLOTS / "inverse_density.png", dpi=100)
+
+
+def write(results: dict) -> None:
+    from common import device_model
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    old = {}
+    path = RESULTS / "inverse.json"
+    if path.exists():
+        old = json.loads(path.read_text())
+    old.update(results)
+    path.write_text(json.dumps(old, indent=1))
+    lines = [f"# Gradients: volpath_delta against prbvolpath ({device_model(mi.variant())}, "
+             f"{mi.variant()})", "", "Written by `python3 benchmarks/inverse.py`.", ""]
+    if "efficiency" in old:
+        lines += ["## Gradient efficiency (1 / (variance x time)), relative to prbvolpath", "",
+                  "| scene | drt | delta | prbvolpath s/render | derivative (drt, prbvolpath) |",
+                  "|---|---|---|---|---|"]
+        for label, row in old["efficiency"].items():
+            lines.append(f"| {label} | {row['drt']['vs_prbvolpath']:.2f}x | "
+                         f"{row['delta']['vs_prbvolpath']:.2f}x | "
+                         f"{row['prbvolpath']['seconds']:.3f} | {row['drt']['mean']:+.4f} +- "
+                         f"{row['drt']['std']:.4f}, {row['prbvolpath']['mean']:+.4f} +- "
+                         f"{row['prbvolpath']['std']:.4f} |")
+        lines.append("")
+    if "memory" in old:
+        m = old["memory"]
+        lines += ["## Backward memory against path length", "",
+                  f"Peak resident memory of one backward render (64x64, 16 spp, albedo 0.99): "
+                  f"max_depth 8: {m['8']['peak_mib']:.0f} MiB, max_depth 256: "
+                  f"{m['256']['peak_mib']:.0f} MiB (ratio {m['ratio_256_over_8']:.2f}).", ""]
+    if "reconstruct" in old:
+        r = old["reconstruct"]
+        lines += ["## Reconstruction (32^3 density, 8 views of 32x32, 4 spp, Adam)", "",
+                  f"prbvolpath: {r['prbvolpath']['iterations']} iterations in "
+                  f"{r['prbvolpath_seconds']:.0f} s, final loss {r['prbvolpath_final_loss']:.3e}"
+                  f"; ours (drt): {r['drt']['iterations']} iterations, reaches that loss after "
+                  f"{r['ours_time_to_prbvolpath_final_loss']:.0f} s; final density error: "
+                  f"ours {r['drt']['history'][-1]['error']:.3f}, prbvolpath "
+                  f"{r['prbvolpath']['history'][-1]['error']:.3f}.", "",
+                  "![loss and error over time](../../docs/results/inverse_density.png)", "",
+                  f"Emission grid (16^3, 4 views; prbvolpath ignores emission): ours "
+                  f"{r['emission_drt']['iterations']} iterations, density-of-emission error "
+                  f"{r['emission_drt']['history'][0]['error']:.3f} -> "
+                  f"{r['emission_drt']['history'][-1]['error']:.3f}.", ""]
+    (RESULTS / "inverse.md").write_text("\n".join(lines))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--part", choices=("efficiency", "memory", "reconstruct", "all"),
+                        default="all")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--memory-child", type=int)
+    args = parser.parse_args()
+    mi.set_variant(default_variant())
+    if args.memory_child:
+        memory_child(args.memory_child)
+        return
+    results = {}
+    if args.part in ("efficiency", "all"):
+        results["efficiency"] = efficiency(args.quick)
+    if args.part in ("memory", "all"):
+        results["memory"] = {str(k): v for k, v in memory().items()}
+    if args.part in ("reconstruct", "all"):
+        results["reconstruct"] = reconstruction(args.quick)
+        plot(results)
+    write(results)
+
+
+if __name__ == "__main__":
+    main()

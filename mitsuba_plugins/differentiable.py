@@ -1,0 +1,76 @@
+"""``render_forward`` / ``render_backward`` of ``volpath_delta`` (Mitsuba's ``ADIntegrator``
+interface, so ``mi.render(scene, params, ...)`` with ``dr.backward`` / ``dr.forward``
+works as with ``prb``): Mitsuba's ``RBIntegrator`` scaffolding (film, ray generation,
+splatting and its adjoint) around our path loop run twice, primal then replay
+(:mod:`mitsuba_plugins.replay`)."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.replay import Replay
+from mitsuba_plugins.scene_media import SceneMedia
+from mitsuba_plugins.volumes import trace_volumes
+
+VARIANT = mi.variant()
+
+_common = mi.ad.integrators.common
+
+
+class ReplayRender:
+    """What ``RBIntegrator.render_forward`` / ``render_backward`` call on ``self``, for
+    one render of ``integrator`` from ``sensor``: Mitsuba's ``prepare`` and
+    ``sample_rays``, and :meth:`sample` (the primal pass and the replay)."""
+    prepare = _common.ADIntegrator.prepare
+    sample_rays = _common.ADIntegrator.sample_rays
+
+    def __init__(self, integrator, sensor: mi.Sensor, seed):
+        self.integrator, self.sensor, self.seed = integrator, sensor, seed
+
+    def aov_names(self):
+        return []
+
+    def sample(self, mode, scene, sampler, ray, δL=None, state_in=None, active=True,
+               **kwargs):
+        integrator = self.integrator
+        media = SceneMedia(scene)
+        medium = self.sensor.get_medium()
+        medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
+        active = mi.Bool(active)
+        if mode == dr.ADMode.Primal:
+            L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
+                                     medium, media, active)
+            L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
+            return L, valid, [], (L, valid)
+        L_primal, valid_primal = state_in
+        # lanes the primal pass zeroed (NaN/Inf, no valid ray) carry no derivative
+        keep = valid_primal & dr.all(dr.isfinite(L_primal))
+        dL = None if δL is None else dr.select(keep, δL, 0.0)
+        replay = Replay(mode, dL, dr.select(keep, L_primal, 0.0), self.seed,
+                        integrator.gradient_estimator)
+        L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
+                                       medium, media, active & keep, replay)
+        if mode == dr.ADMode.Forward:
+            return integrator.sample_guard(dr.select(keep, grad, 0.0), active), valid, [], None
+        return L, valid, [], None
+
+
+def _sensor(scene, sensor):
+    return scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+
+
+def render_forward(integrator, scene, params, sensor=0, seed=0, spp=0):
+    """Forward-mode derivative image (``RBIntegrator.render_forward``)."""
+    integrator.check_gradients()
+    sensor = _sensor(scene, sensor)
+    return _common.RBIntegrator.render_forward(ReplayRender(integrator, sensor, seed), scene,
+                                               params, sensor, seed, spp)
+
+
+def render_backward(integrator, scene, params, grad_in, sensor=0, seed=0, spp=0):
+    """Accumulate ``grad_in`` into the parameters' gradients
+    (``RBIntegrator.render_backward``)."""
+    integrator.check_gradients()
+    sensor = _sensor(scene, sensor)
+    return _common.RBIntegrator.render_backward(ReplayRender(integrator, sensor, seed), scene,
+                                                params, grad_in, sensor, seed, spp)

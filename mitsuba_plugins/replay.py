@@ -1,0 +1,259 @@
+r"""Gradients of ``volpath_delta`` by path replay (docs/method.md section 11).
+
+Mitsuba's ``RBIntegrator`` scaffolding (``render_forward`` / ``render_backward``) runs a
+sample function twice with the same random numbers: a primal pass that returns each
+sample's radiance ``L``, then a *replay* that walks the same path again and, at every
+event whose weight depends on a scene parameter, propagates the derivative of that
+weight times the radiance the path gathered *after* the event (Vicini, Speierer and
+Jakob 2021). Nothing is stored per vertex: memory does not grow with path length.
+
+The replay traces exactly the primal path loop (:func:`mitsuba_plugins.volumes.trace_volumes`)
+with a :class:`Replay` handed to it; every sampling decision stays detached, and the
+hooks re-evaluate the parameters they need under ``dr.resume_grad``:
+
+* **segments** (free flights and shadow rays): the derivative of a transmittance is
+  :math:`-\int \partial\sigma_t\,ds` times what follows. It is estimated from points of
+  a second random stream (:attr:`Replay.aux`, never the path's sampler) drawn at the
+  majorant's rate on shadow rays and one per step on free flights (hashed numbers,
+  :class:`HashStream`: the path's sampler is never touched): differential
+  tracking after Nimier-David, Mueller, Keller and Jakob 2022, with no division by the
+  null density (``gradient_estimator = "drt"``);
+* ``"delta"``: differentiate the delta-tracking estimator itself, as ``prbvolpath``
+  does: a null collision weighs :math:`\sigma_n(\theta) / \sigma_n` (variance grows
+  as :math:`1 / \sigma_n` where the majorant is tight);
+* **real scattering**: :math:`\sigma_s(\theta) / \sigma_s` (density, ``scale``,
+  ``albedo``) and the phase function's value over its detached value (``g``);
+* **surfaces**: the BSDF's value over its detached value (as ``prb``);
+* **light gathered** (medium emission, emitter samples): the attached term itself.
+
+Emitters' own parameters, shapes and visibility are not differentiated (see
+docs/usage.md "Gradients").
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.contract import medium_interaction
+from mitsuba_plugins.estimators import NullCollisionRule
+from mitsuba_plugins.scene_media import shadow_pieces
+from mitsuba_plugins.walk import walk
+
+VARIANT = mi.variant()
+
+#: Names of ``gradient_estimator`` (``volpath_delta``).
+GRADIENT_ESTIMATORS = ("drt", "delta")
+
+#: Propagation flags of every term. Terms share parts of the graph (one lookup gives
+#: ``sigma_s`` and ``sigma_n``; every lookup shares the grid's tensor and ``scale``),
+#: so edges are kept (Dr.Jit's default deletes them after the first traversal, and the
+#: second term would see no parameter); interior gradients are cleared so that none is
+#: propagated twice. A term may not depend on the parameters being differentiated (the
+#: phase function's value when only the density is).
+AD_FLAGS = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput | dr.ADFlag.AllowNoGrad
+
+#: Salt of the replay's hashed random numbers (never the path's sampler).
+HASH_SALT = 0x9E3779B9
+
+
+def _bits(x: mi.Float) -> mi.UInt32:
+    return dr.reinterpret_array(mi.UInt32, mi.Float(x))
+
+
+class HashStream:
+    """Random numbers that are no loop state of the path: TEA hashes of a per-lane key
+    and a counter. A walk handed one as its ``sampler`` carries only the counter."""
+    DRJIT_STRUCT = {"key": mi.UInt32, "counter": mi.UInt32}
+
+    def __init__(self, key=None, counter=None):
+        self.key, self.counter = key, counter
+
+    def next_1d(self, active=True) -> mi.Float:
+        self.counter = self.counter + 1
+        return mi.sample_tea_float32(self.key, self.counter, 6)
+
+
+class Replay:
+    """What the replay of one path needs besides the loop state: the mode
+    (``dr.ADMode.Backward`` or ``Forward``), the adjoint radiance ``dL`` of each sample
+    (backward), the primal radiance ``L_primal`` (what the whole path gathers), a
+    per-lane ``key`` for hashed random numbers and the segment rule (``estimator``:
+    :data:`GRADIENT_ESTIMATORS`).
+
+    Hooks return the forward-mode tangent they add (0 in backward mode, where they
+    accumulate into the parameters' gradients by ``dr.backward_from``)."""
+
+    def __init__(self, mode, dL, L_primal, seed, estimator: str):
+        self.mode, self.dL, self.L_primal, self.estimator = mode, dL, L_primal, estimator
+        lane = dr.arange(mi.UInt32, dr.width(L_primal))
+        self.key = mi.sample_tea_32(lane, mi.UInt32(seed) + HASH_SALT)[0]
+
+    def ray_key(self, ray: mi.Ray3f, salt: int = 0) -> mi.UInt32:
+        """A key for numbers along ``ray`` (its origin and direction hashed in)."""
+        h = _bits(ray.o.x) ^ (_bits(ray.o.y) * 0x85EBCA6B) ^ (_bits(ray.o.z) * 0xC2B2AE35)
+        h ^= _bits(ray.d.x) * 0x27D4EB2F + _bits(ray.d.y) + salt
+        return mi.sample_tea_32(self.key, h)[0]
+
+    def uniform(self, ray: mi.Ray3f, t: mi.Float) -> mi.Float:
+        """A uniform number for position ``t`` of ``ray``, with no state."""
+        return mi.sample_tea_float32(self.ray_key(ray), _bits(t), 6)
+
+    def stream(self, ray: mi.Ray3f) -> HashStream:
+        """A fresh :class:`HashStream` for one walk along ``ray``."""
+        return HashStream(self.ray_key(ray, 1), mi.UInt32(0))
+
+    @property
+    def forward(self) -> bool:
+        return self.mode == dr.ADMode.Forward
+
+    def emit(self, term: mi.Spectrum, active) -> mi.Spectrum:
+        """Propagate the attached ``term`` (a part of the sample's radiance whose value
+        is detached elsewhere) on ``active`` lanes; returns its tangent (forward)."""
+        with dr.resume_grad():
+            term = dr.select(active, term, 0.0)
+            if self.forward:
+                return mi.Spectrum(dr.select(active, dr.forward_to(term, flags=AD_FLAGS), 0.0))
+            dr.backward_from(self.dL * term, flags=AD_FLAGS)
+        return mi.Spectrum(0.0)
+
+    def factor(self, weight: mi.Spectrum, after: mi.Spectrum, active) -> mi.Spectrum:
+        """A factor of the path's weight, ``weight`` attached, that multiplies the
+        radiance ``after`` (detached) gathered after it: propagates ``after * dweight /
+        weight``. Lanes whose factor is 0 gather nothing after it and take no part."""
+        with dr.resume_grad():
+            value = dr.detach(weight)
+            ratio = dr.select(value != 0, weight / dr.select(value != 0, value, 1.0), 0.0)
+            return self.emit(after * ratio, active)
+
+    def transmittance(self, tau: mi.Spectrum, after: mi.Spectrum, active) -> mi.Spectrum:
+        """A transmittance factor ``exp(-tau)`` (``tau`` an attached, unbiased estimate
+        of the optical depth of a stretch) in front of ``after``: propagates
+        ``-after * dtau``."""
+        with dr.resume_grad():
+            return self.emit(-after * (tau - dr.detach(tau)), active)
+
+
+def attached(fn):
+    """``fn()`` with gradients resumed (the replay runs under ``dr.suspend_grad``)."""
+    with dr.resume_grad():
+        return fn()
+
+
+# -- the transmittance of a shadow ray -------------------------------------------------
+class DepthState:
+    DRJIT_STRUCT = {"tau": mi.Float,        # optical depth to the next point
+                    "grad": mi.Spectrum}    # tangent (forward mode)
+
+    def __init__(self, tau=None, grad=None):
+        self.tau, self.grad = tau, grad
+
+
+class OpticalDepthGradient(NullCollisionRule):
+    r"""The derivative of a shadow ray's transmittance, whatever estimated its value:
+    :math:`\partial T = -T \int \partial\sigma_t\,ds`, the integral taken over points
+    at the majorant's rate (``Replay.aux``'s numbers, so the path's own stay in step),
+    each adding :math:`-\mathit{after}\,\partial\sigma_t / \sigma_{maj}`; ``after`` is
+    the emitter sample's contribution (detached, ``T`` included). The walk's
+    ``sampler`` is a :meth:`Replay.stream`."""
+    label = "optical_depth_gradient"
+    budget = None
+
+    def __init__(self, replay: Replay, after: mi.Spectrum):
+        self.replay, self.after = replay, after
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        return DepthState(-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(0.0))
+
+    def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
+        def term():
+            sigma_t = tracker.sigma_t(medium_interaction(ray, t), collide)
+            return -self.after * sigma_t / dr.select(rate > 0, rate, 1.0)
+        state.grad += self.replay.emit(attached(term), collide)
+        return mi.Bool(True)
+
+    def finish(self, t, state, t_out, entered):
+        return state.grad
+
+
+def shadow_gradient(replay: Replay, media, medium: mi.MediumPtr, ray: mi.Ray3f,
+                    t_max: mi.Float, after: mi.Spectrum, active) -> mi.Spectrum:
+    """The transmittance derivative of one piece ``[0, t_max]`` of a shadow ray in each
+    lane's medium: analytic in homogeneous media (``-after * d(sigma_t) t_max``),
+    :class:`OpticalDepthGradient` in heterogeneous ones. Returns the tangent."""
+    def homogeneous(mask):
+        def tau():
+            _, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
+                                                               mask)
+            return mi.Spectrum(sigma_t) * t_max
+        return replay.transmittance(attached(tau), after, mask)
+
+    def heterogeneous(tracker, mask):
+        return walk(tracker, ray, t_max, replay.stream(ray), OpticalDepthGradient(replay, after),
+                    mask)
+    return media.dispatch(medium, active, mi.Spectrum(0.0), homogeneous, heterogeneous)
+
+
+# -- free flights ------------------------------------------------------------------------
+def interval_optical_depth(replay: Replay, tracker, ray: mi.Ray3f, t: mi.Float,
+                           step: mi.Float, active) -> mi.Spectrum:
+    """An unbiased, attached estimate of the optical depth of ``[t, t + step]``: one
+    point uniform in it (:meth:`Replay.uniform`), ``sigma_t * step``."""
+    s = t + replay.uniform(ray, t) * step
+
+    def tau():
+        return tracker.sigma_t(medium_interaction(ray, s), active) * step
+    return attached(tau)
+
+
+
+def replay_homogeneous(replay: Replay, medium: mi.MediumPtr, ray: mi.Ray3f, distance,
+                       remaining: mi.Spectrum, active, scattered) -> mi.Spectrum:
+    """The derivative of an analytic flight through a homogeneous medium over
+    ``distance``: ``exp(-sigma_t d)`` in front of ``remaining``, and ``sigma_s`` at a
+    real collision (``scattered``). Returns the tangent."""
+    d = dr.select(dr.isfinite(distance), distance, 0.0)    # infinite: T = 0, nothing after
+
+    def coefficients():
+        sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
+                                                                 active)
+        return mi.Spectrum(sigma_s), mi.Spectrum(sigma_t) * d
+    sigma_s, tau = attached(coefficients)
+    return (replay.transmittance(tau, remaining, active)
+            + replay.factor(sigma_s, remaining, scattered))
+
+
+class GradientPass:
+    """The shadow ray's pass in a replay (:func:`mitsuba_plugins.scene_media.shadow_pieces`):
+    the transmittance derivative of each piece (:func:`shadow_gradient`) in front of
+    ``after``, the emitter sample's detached contribution; ``value`` is the tangent."""
+
+    def __init__(self, replay: Replay, media, after: mi.Spectrum):
+        self.replay, self.media, self.after = replay, media, after
+
+    def initial(self):
+        return mi.Spectrum(0.0)
+
+    def piece(self, value, medium, ray, t_piece, sampler, active):
+        return value + shadow_gradient(self.replay, self.media, medium, ray, t_piece,
+                                       self.after, active)
+
+    def surface(self, value, si, bsdf, hit):
+        return value
+
+    def goes_on(self, value):
+        return mi.Bool(True)
+
+
+def replay_vertex(replay: Replay, scene, media, ref, ds, shadow_medium, contribution,
+                  f_attached, active_em, direction_value, after_vertex,
+                  active_next) -> mi.Spectrum:
+    """The derivatives at one vertex: the emitter sample (its BSDF / phase value
+    ``f_attached`` and its shadow ray's transmittance, both in front of the detached
+    ``contribution``), then the sampled direction's value ``direction_value``
+    (attached) in front of ``after_vertex``, all the path gathers after this vertex.
+    Returns the tangent."""
+    grad = replay.factor(f_attached, contribution, active_em)
+    grad += shadow_pieces(scene, ref, ds, shadow_medium,
+                          GradientPass(replay, media, contribution), None,
+                          active_em & dr.any(contribution != 0))
+    return grad + replay.factor(direction_value, after_vertex, active_next)

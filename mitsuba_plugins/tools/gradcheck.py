@@ -1,0 +1,105 @@
+"""Gradient checks: derivatives of a render's mean along parameter directions, by our
+integrators' gradient renders (backward and forward mode) and by central finite
+differences of the primal render with common random numbers (the same seed on both
+sides). Used by tests/test_gradients.py and benchmarks/inverse.py.
+
+A *direction* maps parameter keys of ``mi.traverse(scene)`` to arrays of their shape
+(or scalars). The derivative of ``mean(image)`` along it is ``<grad, direction>``.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def _value(params, key):
+    value = params[key]
+    return type(value)(value)
+
+
+def _as(value, direction):
+    """``direction`` as an array of ``value``'s type."""
+    if isinstance(value, mi.TensorXf):
+        return mi.TensorXf(np.asarray(direction, np.float32).reshape(value.shape))
+    return type(value)(direction)
+
+
+def backward_derivatives(scene, params, direction: dict, integrator, seed: int, spp: int,
+                         weights=None) -> dict:
+    """``{key: <d mean(image) / d params[key], direction[key]>}`` from one backward-mode
+    gradient render with every key of ``direction`` differentiable; ``weights`` (an
+    image of the film's shape): of ``mean(weights * image)`` instead."""
+    originals = {k: _value(params, k) for k in direction}
+    for key in direction:
+        dr.enable_grad(params[key])
+    params.update()
+    img = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed)
+    target = img if weights is None else img * mi.TensorXf(np.asarray(weights, np.float32))
+    dr.backward(dr.mean(target, axis=None))
+    out = {}
+    for key, d in direction.items():
+        grad = np.array(dr.grad(params[key]), np.float64)
+        out[key] = float(np.sum(grad * np.asarray(d, np.float64)))
+        params[key] = originals[key]
+    params.update()
+    return out
+
+
+def forward_image(scene, params, direction: dict, integrator, seed: int, spp: int):
+    """The forward-mode derivative image along ``direction`` (numpy)."""
+    originals = {k: _value(params, k) for k in direction}
+    for key, d in direction.items():
+        dr.enable_grad(params[key])
+    params.update()
+    img = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed)
+    # as dr.forward(params[key]) does: every variable reachable from the parameters
+    # takes its tangent in creation order (values derived at params.update(), such as
+    # grid_medium's folded scale, before the render; dr.forward_to(img) would visit
+    # only the render's own inputs)
+    for key, d in direction.items():
+        dr.set_grad(params[key], _as(params[key], d))
+        dr.enqueue(dr.ADMode.Forward, params[key])
+    dr.traverse(dr.ADMode.Forward)
+    out = np.array(dr.grad(img))
+    for key in direction:
+        params[key] = originals[key]
+    params.update()
+    return out
+
+
+def primal_mean(scene, params, direction: dict, step: float, integrator, seed: int,
+                spp: int, weights=None) -> float:
+    """``mean(image)`` at ``theta + step * direction``."""
+    originals = {k: _value(params, k) for k in direction}
+    for key, d in direction.items():
+        value = originals[key]
+        params[key] = value + _as(value, np.asarray(d, np.float32) * step)
+    params.update()
+    img = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), np.float64)
+    for key in direction:
+        params[key] = originals[key]
+    params.update()
+    return float(np.mean(img if weights is None else img * weights))
+
+
+def finite_difference(scene, params, direction: dict, h: float, integrator, seed: int,
+                      spp: int, weights=None) -> float:
+    """Richardson-extrapolated central difference along ``direction`` with common random
+    numbers: ``(4 D(h) - D(2h)) / 3`` (error O(h^4)), ``D(h) = (f(+h) - f(-h)) / 2h``."""
+    f = {s: primal_mean(scene, params, direction, s, integrator, seed, spp, weights)
+         for s in (-2 * h, -h, h, 2 * h)}
+    d1 = (f[h] - f[-h]) / (2 * h)
+    d2 = (f[2 * h] - f[-2 * h]) / (4 * h)
+    return (4 * d1 - d2) / 3
+
+
+def welch(a, b) -> tuple:
+    """Welch's t-test of two samples' means: ``(t, p)`` (two-sided; p = 1 for two equal
+    constant samples, 0 for two different ones)."""
+    from scipy import stats
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.var() == 0 and b.var() == 0:
+        return (0.0, 1.0) if a.mean() == b.mean() else (np.inf, 0.0)
+    result = stats.ttest_ind(a, b, equal_var=False)
+    return float(result.statistic), float(result.pvalue)
