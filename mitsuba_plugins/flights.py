@@ -121,15 +121,19 @@ class DeltaTracking(NullCollisionRule):
             sigma_n = attached(lambda: dr.maximum(sigma_maj - props.sigma_t, 0.0))
             state.grad += replay.factor(sigma_n, after, collide & ~real)
 
+    def gather(self, state, props, rate, collide) -> None:
+        """With ``emission``: the light of a tentative collision drawn at ``rate``,
+        ``beta sigma_a Le / rate``."""
+        if self.emission:
+            state.L_e = dr.select(collide, state.L_e + state.beta * (
+                props.sigma_t - props.sigma_s) * props.Le / rate, state.L_e)
+
     def collide(self, tracker, ray, sampler, t, sigma_maj, rate, state, collide):
         props = tracker.properties(medium_interaction(ray, t), collide)
         sigma_t, sigma_s = props.sigma_t, props.sigma_s
         sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
         beta = state.beta
-        if self.emission:
-            state.L_e = dr.select(collide,
-                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / sigma_maj,
-                                  state.L_e)
+        self.gather(state, props, sigma_maj, collide)
         u = sampler.next_1d(collide)
         if self.chromatic:
             real = collide & (u * sigma_maj < index_channel(sigma_t, self.hero))
@@ -225,10 +229,7 @@ class DecompositionTracking(DeltaTracking):
         sigma_r = dr.maximum(sigma_t - sigma_c, 0.0)
         sigma_n = dr.maximum(sigma_maj - sigma_t, 0.0)
         beta = state.beta
-        if self.emission:
-            state.L_e = dr.select(collide,
-                                  state.L_e + beta * (sigma_t - sigma_s) * props.Le / rate,
-                                  state.L_e)
+        self.gather(state, props, rate, collide)
         u = sampler.next_1d(collide)
         if self.chromatic:
             real = collide & (u * rate < index_channel(sigma_r, self.hero))

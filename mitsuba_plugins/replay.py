@@ -86,7 +86,9 @@ class Replay:
     def __init__(self, mode, dL, L_primal, seed, estimator: str):
         self.mode, self.dL, self.L_primal, self.estimator = mode, dL, L_primal, estimator
         lane = dr.arange(mi.UInt32, dr.width(L_primal))
-        self.key = mi.sample_tea_32(lane, mi.UInt32(seed) + HASH_SALT)[0]
+        # opaque: a literal seed would make every render with a new seed a new kernel
+        seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
+        self.key = mi.sample_tea_32(lane, seed + HASH_SALT)[0]
 
     def ray_key(self, ray: mi.Ray3f, salt: int = 0) -> mi.UInt32:
         """A key for numbers along ``ray`` (its origin and direction hashed in)."""
