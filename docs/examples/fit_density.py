@@ -17,11 +17,11 @@ reference = mi.render(scene, spp=256)                   # the "photograph"
 
 params[key] = mi.Float(0.5 * truth)                     # a wrong starting value
 params.update()
-opt = mi.ad.Adam(lr=0.2)
+opt = mi.ad.Adam(lr=0.1)
 opt[key] = params[key]
 params.update(opt)
 integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 8})
-for it in range(30):
+for it in range(50):
     img = mi.render(scene, params, integrator=integrator, spp=16, seed=it)
     loss = dr.mean(dr.square(img - reference), axis=None)
     dr.backward(loss)
