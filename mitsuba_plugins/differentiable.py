@@ -59,9 +59,49 @@ def _sensor(scene, sensor):
     return scene.sensors()[sensor] if isinstance(sensor, int) else sensor
 
 
+#: Parameters of these objects that the replay differentiates (their other parameters:
+#: positions, transforms, emitted radiance, sensor settings are not)
+_DIFFERENTIATED = {"shape": ("bsdf.", "interior_medium.", "exterior_medium."),
+                   "sensor": ("medium.",), "emitter": ()}
+
+
+def undifferentiated(scene) -> list:
+    """Names of gradient-enabled parameters whose derivatives the replay does not
+    propagate (emitters, shapes' geometry and transforms, sensors): their gradient
+    would be silently 0."""
+    found = []
+    kinds = (("emitter", scene.emitters()), ("shape", scene.shapes()),
+             ("sensor", scene.sensors()))
+    for kind, objects in kinds:
+        for obj in objects:
+            params = mi.traverse(obj)
+            for key in params.keys():
+                if key.startswith(_DIFFERENTIATED[kind]):
+                    continue
+                try:
+                    enabled = dr.grad_enabled(params[key])
+                except (TypeError, RuntimeError):
+                    enabled = False
+                if enabled:
+                    found.append(f"{obj.id() or obj.class_name()}.{key}")
+    return found
+
+
+def check(integrator, scene) -> None:
+    """Refuse, in one line, a gradient render whose derivatives would be silently 0 or
+    are not implemented."""
+    integrator.check_gradients()
+    missing = undifferentiated(scene)
+    if missing:
+        raise NotImplementedError(
+            f"{integrator.NAME}: gradients with respect to {', '.join(missing)} are not "
+            "computed (emitters, shapes' geometry and sensors are not differentiated; use "
+            "Mitsuba's 'prb' or 'prb_projective' for those)")
+
+
 def render_forward(integrator, scene, params, sensor=0, seed=0, spp=0):
     """Forward-mode derivative image (``RBIntegrator.render_forward``)."""
-    integrator.check_gradients()
+    check(integrator, scene)
     sensor = _sensor(scene, sensor)
     return _common.RBIntegrator.render_forward(ReplayRender(integrator, sensor, seed), scene,
                                                params, sensor, seed, spp)
@@ -70,7 +110,7 @@ def render_forward(integrator, scene, params, sensor=0, seed=0, spp=0):
 def render_backward(integrator, scene, params, grad_in, sensor=0, seed=0, spp=0):
     """Accumulate ``grad_in`` into the parameters' gradients
     (``RBIntegrator.render_backward``)."""
-    integrator.check_gradients()
+    check(integrator, scene)
     sensor = _sensor(scene, sensor)
     return _common.RBIntegrator.render_backward(ReplayRender(integrator, sensor, seed), scene,
                                                 params, grad_in, sensor, seed, spp)

@@ -234,7 +234,9 @@ class DecompositionTracking(DeltaTracking):
         if self.chromatic:
             real = collide & (u * rate < index_channel(sigma_r, self.hero))
             # the residual's scattering: its share of the medium's, sigma_s sigma_r / sigma_t
-            share = sigma_s * sigma_r / dr.select(sigma_t > 0, sigma_t, 1.0)
+            # (mi.Spectrum: dr.select of a spectrum and a float is a plain Array4f in
+            # spectral variants, which the loop refuses as the throughput's new type)
+            share = mi.Spectrum(sigma_s * sigma_r / dr.select(sigma_t > 0, sigma_t, 1.0))
             state.beta, state.r_u = spectral_decision(beta, state.r_u, self.hero, collide, real,
                                                       sigma_r, sigma_n, share)
         else:

@@ -12,10 +12,10 @@ with a :class:`Replay` handed to it; every sampling decision stays detached, and
 hooks re-evaluate the parameters they need under ``dr.resume_grad``:
 
 * **segments** (free flights and shadow rays): the derivative of a transmittance is
-  :math:`-\int \partial\sigma_t\,ds` times what follows. It is estimated from points of
-  a second random stream (:attr:`Replay.aux`, never the path's sampler) drawn at the
-  majorant's rate on shadow rays and one per step on free flights (hashed numbers,
-  :class:`HashStream`: the path's sampler is never touched): differential
+  :math:`-\int \partial\sigma_t\,ds` times what follows. It is estimated from points
+  drawn at the majorant's rate on shadow rays and one per step on free flights, with
+  hashed numbers (:class:`HashStream`, :meth:`Replay.uniform`: the path's sampler is
+  never touched): differential
   tracking after Nimier-David, Mueller, Keller and Jakob 2022, with no division by the
   null density (``gradient_estimator = "drt"``);
 * ``"delta"``: differentiate the delta-tracking estimator itself, as ``prbvolpath``
@@ -153,7 +153,8 @@ class DepthState:
 class OpticalDepthGradient(NullCollisionRule):
     r"""The derivative of a shadow ray's transmittance, whatever estimated its value:
     :math:`\partial T = -T \int \partial\sigma_t\,ds`, the integral taken over points
-    at the majorant's rate (``Replay.aux``'s numbers, so the path's own stay in step),
+    at the majorant's rate (hashed numbers, :meth:`Replay.stream`: the path's own stay
+    in step),
     each adding :math:`-\mathit{after}\,\partial\sigma_t / \sigma_{maj}`; ``after`` is
     the emitter sample's contribution (detached, ``T`` included). The walk's
     ``sampler`` is a :meth:`Replay.stream`."""
@@ -205,7 +206,6 @@ def interval_optical_depth(replay: Replay, tracker, ray: mi.Ray3f, t: mi.Float,
     def tau():
         return tracker.sigma_t(medium_interaction(ray, s), active) * step
     return attached(tau)
-
 
 
 def replay_homogeneous(replay: Replay, medium: mi.MediumPtr, ray: mi.Ray3f, distance,

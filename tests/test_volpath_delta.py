@@ -94,6 +94,8 @@ def test_same_expectation_as_volpath(case):
     _against_volpath(CASES[case], f"volpath_delta-{case}")
 
 
+@pytest.mark.skipif(mi.is_spectral, reason="free_flight = decomposition is refused in "
+                    "spectral variants (test_decomposition_is_refused_in_spectral_variants)")
 @pytest.mark.parametrize("case", ["smoke_grid_medium", "chromatic_grid_medium",
                                   "sparse_grid_medium", "camera_inside_medium"])
 def test_decomposition_tracking_against_volpath(case):
@@ -102,6 +104,8 @@ def test_decomposition_tracking_against_volpath(case):
                      free_flight="decomposition")
 
 
+@pytest.mark.skipif(mi.is_spectral, reason="free_flight = decomposition is refused in "
+                    "spectral variants (test_decomposition_is_refused_in_spectral_variants)")
 def test_decomposition_decides_no_collision_by_lookup_in_a_constant_grid(tmp_path):
     """Where the minorant equals the majorant the control takes every collision: no
     tentative collision is left to decide by a density lookup (delta tracking looks up
@@ -182,6 +186,13 @@ def test_depth_semantics_match_volpath():
                          max_depth=depth)
 
 
+@pytest.mark.skipif(not mi.is_spectral, reason="about spectral variants")
+def test_decomposition_is_refused_in_spectral_variants():
+    with pytest.raises(Exception, match="'free_flight' = 'decomposition' is biased in "
+                                        "spectral variants; allowed there: 'delta'"):
+        mi.load_dict({"type": "volpath_delta", "free_flight": "decomposition"})
+
+
 # -- analytic answers -------------------------------------------------------------------
 EMISSIVE = {
     "gray_constant": ({"sigma_t": {"type": "constvolume", "value": 2.0,
@@ -192,7 +203,7 @@ EMISSIVE = {
 }
 
 
-@pytest.mark.parametrize("flight", ["delta", "decomposition"])
+@pytest.mark.parametrize("flight", ["delta"] + ([] if mi.is_spectral else ["decomposition"]))
 @pytest.mark.parametrize("case", list(EMISSIVE))
 def test_emissive_absorbing_slab(case, flight, tmp_path):
     """Le (1 - exp(-sigma_t d)) through a slab of thickness d = 2 (t-test per channel)."""

@@ -49,7 +49,7 @@ def backward_derivatives(scene, params, direction: dict, integrator, seed: int, 
 def forward_image(scene, params, direction: dict, integrator, seed: int, spp: int):
     """The forward-mode derivative image along ``direction`` (numpy)."""
     originals = {k: _value(params, k) for k in direction}
-    for key, d in direction.items():
+    for key in direction:
         dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed)
