@@ -115,10 +115,11 @@ class GridMedium(mi.Medium):
 
     ``mi.traverse`` exposes ``scale``, ``sigma_t`` (the multiplier), ``albedo``,
     ``emission`` and the phase function's parameters; with dense storage also ``data``,
-    the grid tensor (same shape; the majorants are rebuilt on update). All are
-    differentiable with ``volpath_delta`` (``sigma_t`` in RGB variants only; ``data``
-    and ``albedo`` also with ``prbvolpath``). Sparse storage
-    does not expose its pool: changing voxel values would change which bricks exist.
+    the grid tensor (same shape; the majorants are rebuilt on update), with sparse storage
+    ``bricks``, the brick pool (which bricks exist is fixed:
+    :mod:`mitsuba_plugins.sparse`), and with ``emission_grid`` its ``emission_bricks``.
+    All are differentiable with ``volpath_delta`` (``sigma_t`` in RGB variants only;
+    ``data`` and ``albedo`` also with ``prbvolpath``).
     """
 
     #: implements mitsuba_plugins.contract.TrackedMedium (majorant_grid, refinement,
@@ -337,6 +338,9 @@ class GridMedium(mi.Medium):
         callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
         if self.emission is not None:
             callback.put("emission", self.emission, mi.ParamFlags.Differentiable)
+        if self.emission_grid is not None and not self.emission_grid[1].converted:
+            callback.put("emission_bricks", self.emission_grid[0].bricks(),
+                         mi.ParamFlags.Differentiable)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys=None):
@@ -354,7 +358,9 @@ class GridMedium(mi.Medium):
         dr.make_opaque(self.scale, self.sigma_t_factor)
         self._fold_gray_factor()
         stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
-        self.store.changed()
+        self.store.changed(keys)
+        if self.emission_grid is not None:
+            stores.synchronize(self.emission_grid[0], "emission_bricks", keys)
         self._update_majorants()
 
     def to_string(self) -> str:

@@ -6,6 +6,16 @@ two voxels around ``x N - 1/2`` (clamped to ``[0, N - 1]``), nearest lookups rea
 ``floor(x N)`` (clamped). One gather reads the brick's pool slot from the indirection
 grid; the voxels come from that one block (the apron holds the high-side neighbours), so
 a trilinear lookup costs 1 + 8 gathers whatever the brick.
+
+Editing and differentiating stored values (:meth:`SparseGrid.bricks`,
+:meth:`SparseGrid.synchronize`): the pool is exposed as a tensor ``(stored, SIDE, SIDE,
+SIDE, C)``; a voxel has one *owning* copy, in its own brick's ``BRICK^3`` interior (or,
+for a voxel of a brick not stored, in the apron of a stored neighbour); other apron copies
+and the clamp padding beyond the grid are copies that lookups read. After an edit
+every copy is re-read from its owner by one gather, so gradients of lookups that read a
+copy land on the owner (the copies' entries of the exposed tensor get none and their
+values are ignored), and slot 0 stays zeros. Which bricks exist never changes: a voxel
+that no stored brick holds stays 0 and has no gradient (no lookup reads it).
 """
 from __future__ import annotations
 
@@ -47,6 +57,92 @@ class SparseGrid:
         z, y, x = self.shape[:3]
         self._size_i = (x, y, z)
         dr.make_opaque(self.index, self.pool)
+        self.index_host = index        #: the indirection grid (Bz, By, Bx) on the host
+        self._tensor = None
+
+    # -- editing ----------------------------------------------------------------------
+    def bricks(self) -> mi.TensorXf:
+        """The pool as a tensor ``(stored, SIDE, SIDE, SIDE, C)`` (slot 0: the empty
+        block), for ``mi.traverse``; made once, sharing the pool's storage."""
+        if self._tensor is None:
+            self._tensor = mi.TensorXf(self.pool, shape=(self.stored, SIDE, SIDE, SIDE,
+                                                         self.channels))
+        return self._tensor
+
+    @property
+    def exposed(self) -> bool:
+        """Whether :meth:`bricks` handed the pool out (to ``mi.traverse``)."""
+        return self._tensor is not None
+
+    def synchronize(self) -> None:
+        """Re-derive the pool from the owning copies of the exposed tensor (after an edit
+        through ``mi.traverse``; differentiable: one gather)."""
+        tensor = self.bricks()
+        expected = (self.stored, SIDE, SIDE, SIDE, self.channels)
+        if tuple(tensor.shape) != expected:
+            raise ValueError(f"changed shape from {expected} to {tuple(tensor.shape)}")
+        source, owner = self._owners()
+        self.pool = dr.gather(mi.Float, tensor.array, source, owner)
+        dr.make_opaque(self.pool)
+
+    def _owners(self):
+        """For every pool element: the element of its voxel's owning copy, and whether the
+        voxel has one (False: slot 0, read as 0). The owner is the copy in the voxel's own
+        brick when that is stored, else (a voxel of an empty brick that a neighbour's
+        apron holds) the apron copy of the first stored brick among the voxel's low
+        neighbours, x first."""
+        c, block = self.channels, SIDE ** 3
+        e = dr.arange(mi.UInt32, self.stored * block * c)
+        v = e // c
+        slot, offset = v // block, v % block
+        local = mi.Vector3i(offset % SIDE, (offset // SIDE) % SIDE, offset // (SIDE * SIDE))
+        # brick coordinates (x, y, z) of every slot, from the indirection grid
+        bz, by, bx = np.nonzero(self.index_host)
+        coords = np.zeros((self.stored, 3), np.int32)
+        coords[self.index_host[bz, by, bx]] = np.stack([bx, by, bz], axis=1)
+        brick = mi.Vector3i(*(dr.gather(mi.Int32, mi.Int32(coords[:, k]), slot)
+                              for k in range(3)))
+        voxel = dr.clip(brick * BRICK + local, 0, mi.Vector3i(*self._size_i) - 1)
+        home = voxel // BRICK
+        source, found = dr.zeros(mi.UInt32, dr.width(e)), slot > 0
+        owned = mi.Bool(False)
+        for dz, dy, dx in ((0, 0, 0), (0, 0, 1), (0, 1, 0), (0, 1, 1), (1, 0, 0), (1, 0, 1),
+                           (1, 1, 0), (1, 1, 1)):
+            b = home - mi.Vector3i(dx, dy, dz)
+            inner = voxel - b * BRICK               # 0..8: the apron is 8
+            ok = found & ~owned & dr.all(b >= 0) & dr.all(inner <= BRICK)
+            entry = mi.UInt32((b.z * self.counts[1] + b.y) * self.counts[2] + b.x)
+            b_slot = dr.gather(mi.UInt32, self.index, entry, ok)
+            ok &= b_slot > 0
+            element = (b_slot * block + mi.UInt32((inner.z * SIDE + inner.y) * SIDE
+                                                  + inner.x)) * c + e % c
+            source = dr.select(ok, element, source)
+            owned |= ok
+        return source, owned
+
+    def densify(self, values) -> np.ndarray:
+        """The ``(Z, Y, X, C)`` grid of ``values`` laid out as :meth:`bricks` (e.g. the
+        gradient of the bricks), read at each voxel's owning copy; 0 where a voxel has
+        none."""
+        source, owned = (np.asarray(a) for a in self._owners())
+        mine = np.nonzero(owned & (source == np.arange(source.size)))[0]
+        c, block = self.channels, SIDE ** 3
+        v = mine // c
+        offset = v % block
+        local = np.stack([offset // (SIDE * SIDE), (offset // SIDE) % SIDE, offset % SIDE], 1)
+        bz, by, bx = np.nonzero(self.index_host)
+        coords = np.zeros((self.stored, 3), np.int64)
+        coords[self.index_host[bz, by, bx]] = np.stack([bz, by, bx], axis=1)
+        voxel = coords[v // block] * BRICK + local
+        out = np.zeros(self.shape, np.float32)
+        out[voxel[:, 0], voxel[:, 1], voxel[:, 2], mine % c] = \
+            np.asarray(values, np.float32).reshape(-1)[mine]
+        return out
+
+    def extrema(self) -> tuple:
+        """``(maxima, minima)`` per slot and channel of the current pool (host)."""
+        blocks = self.pool.numpy().reshape(self.stored, -1, self.channels)
+        return blocks.max(axis=1), blocks.min(axis=1)
 
     @property
     def nbytes(self) -> int:

@@ -108,7 +108,7 @@ class DenseStore:
             # reduced to luminance in mono).
             callback.put("data", self.data, mi.ParamFlags.Differentiable)
 
-    def changed(self) -> None:
+    def changed(self, keys=None) -> None:
         if tuple(self.data.shape) != tuple(self.texture.tensor().shape):
             raise PluginParameterError(
                 f"grid_medium: parameter 'data' changed shape from "
@@ -120,8 +120,8 @@ class DenseStore:
 
 
 class SparseStore:
-    """Bricks (:class:`~mitsuba_plugins.sparse.SparseGrid`) and their extrema. The pool
-    is not exposed: changing voxel values would change which bricks exist."""
+    """Bricks (:class:`~mitsuba_plugins.sparse.SparseGrid`) and their extrema. The stored
+    bricks' values are exposed as ``bricks`` (which bricks exist stays fixed)."""
     kind = "sparse"
 
     def __init__(self, grid, values: GridValues, shape, to_local, interpolation: str,
@@ -157,14 +157,30 @@ class SparseStore:
                       self.to_local)
 
     def traverse(self, callback) -> None:
-        pass
+        if not self.values.converted:     # as DenseStore: the file's own values only
+            callback.put("bricks", self.grid.bricks(), mi.ParamFlags.Differentiable)
 
-    def changed(self) -> None:
-        pass
+    def changed(self, keys=None) -> None:
+        if synchronize(self.grid, "bricks", keys):
+            self.extrema = (*self.grid.extrema(), self.extrema[2])
 
     def describe(self) -> str:
         return (f",\n  storage = sparse ({self.grid.stored - 1} bricks stored, "
                 f"{self.grid.nbytes / 2**20:.1f} MiB)")
+
+
+def synchronize(grid, name: str, keys) -> bool:
+    """After an edit of a sparse grid's exposed bricks (parameter ``name``): the pool
+    re-derived from the owning copies (:meth:`SparseGrid.synchronize`) and every value
+    checked (finite, >= 0). False where the bricks were not exposed or not changed."""
+    if not grid.exposed or (keys is not None and name not in keys):
+        return False
+    try:
+        grid.synchronize()
+    except ValueError as error:
+        raise PluginParameterError(f"grid_medium: parameter '{name}' {error}") from None
+    gridio.check_values(f"<{name}>", name, grid.pool.numpy())
+    return True
 
 
 class VolumeStore:
@@ -199,7 +215,7 @@ class VolumeStore:
     def traverse(self, callback) -> None:
         callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
 
-    def changed(self) -> None:
+    def changed(self, keys=None) -> None:
         check_volume_range("grid_medium", "sigma_t", self.volume, 0.0, None)
 
     def describe(self) -> str:
@@ -307,18 +323,19 @@ def cell_position(p: mi.Point3f, shape) -> mi.Vector3f:
 
 
 # -- nested volumes -------------------------------------------------------------------------
-def volume_max(volume: mi.Volume) -> float:
+def volume_max(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
     """A bound of a volume without grid data: Mitsuba's ``max()``, and in spectral
     variants also the largest value over the visible range (Mitsuba's ``max()`` of an
     upsampled rgb constant is not one: 0.84 for (1, 0.2, 1), whose spectrum reaches
-    0.9998), read at the centre of its box."""
+    0.9998), read at the centre of its box, times ``1 + slack`` (a majorant's margin; 0
+    for a range check: an albedo of 1 upsamples to at most 1.0 exactly)."""
     vmax = float(volume.max())
     if mi.is_spectral:
         it = dr.zeros(mi.Interaction3f, 256)
         it.wavelengths = probe_wavelengths(256)
         it.p = mi.Point3f(volume.bbox().center())
         probed = float(np.max(np.asarray(volume.eval(it))))
-        vmax = max(vmax, probed * (1 + PROBE_SLACK))
+        vmax = max(vmax, probed * (1 + slack))
     return vmax
 
 
@@ -335,7 +352,7 @@ def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,
             data = np.stack([s_min * data[..., 3], s_max * data[..., 3]], axis=-1)
         gridio.check_values(f"<{name} volume>", name, data, lo, hi)
         return
-    vmax = volume_max(volume)
+    vmax = volume_max(volume, slack=0.0)
     if not np.isfinite(vmax) or (hi is not None and vmax > hi):
         raise PluginParameterError(
             f"{plugin}: parameter '{name}' has maximum {vmax:g}; allowed: values in "
