@@ -109,12 +109,6 @@ class VolpathDelta(VolumetricIntegrator):
         self.transmittance = p.choice("transmittance", DEFAULT_TRANSMITTANCE,
                                       tuple(TRANSMITTANCE_ESTIMATORS))
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
-        if self.free_flight == "decomposition" and mi.is_spectral:
-            # measured: an emissive slab of chromatic extinction renders 1.199 where
-            # 0.948 is expected (llvm_ad_spectral); not found yet, so refused
-            raise PluginParameterError(
-                "volpath_delta: parameter 'free_flight' = 'decomposition' is biased in "
-                "spectral variants; allowed there: 'delta'")
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],

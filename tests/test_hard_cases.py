@@ -281,8 +281,6 @@ FURNACE_INTEGRATORS = {
     "volpath_raymarch_step_0.4": {"type": "volpath_raymarch", "step_size": 0.4},
     "volpath_raymarch_single": {"type": "volpath_raymarch", "mode": "single"},
 }
-if mi.is_spectral:    # refused there (volpath_delta's free_flight)
-    del FURNACE_INTEGRATORS["decomposition"]
 #: homogeneous media are never tracked nor marched: one flight of each kind covers them
 HOMOGENEOUS_FURNACE_INTEGRATORS = ("volpath_delta", "volpath_raymarch",
                                    "volpath_raymarch_single")
@@ -357,8 +355,6 @@ CONFIGURATIONS = {
                              "step_mode": "majorant", "step_optical_depth": 0.5},
     "volpath": {"type": "volpath"},
 }
-if mi.is_spectral:    # refused there (volpath_delta's free_flight)
-    del CONFIGURATIONS["decomposition"]
 #: what differs between configurations only matters in heterogeneous media: homogeneous
 #: media are rendered with one configuration of each way through them
 HOMOGENEOUS_CONFIGURATIONS = ("delta-residual", "march-multi", "march-single",
