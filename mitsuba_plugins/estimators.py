@@ -127,9 +127,14 @@ class NullCollisionRule:
         """``sigma_c`` on the current piece: its segment's minorant."""
         return seg.sigma_min
 
-    def step(self, tracker, ray, sampler, seg, t, state, active):
-        rate = seg.sigma_maj - self.control_extinction(tracker, seg) if self.control else \
+    def rate(self, tracker, seg) -> mi.Float:
+        """The rate of tentative collisions on the current piece: ``sigma_maj`` (minus the
+        control's extinction with ``control``)."""
+        return seg.sigma_maj - self.control_extinction(tracker, seg) if self.control else \
             seg.sigma_maj
+
+    def step(self, tracker, ray, sampler, seg, t, state, active):
+        rate = self.rate(tracker, seg)
         seg_tau = dr.select(rate > 0, rate * (seg.t_end - t), 0.0)
         collide = active & (state.tau < seg_tau)
         step = dr.select(collide, state.tau / rate, seg.t_end - t)

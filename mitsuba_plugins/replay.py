@@ -150,6 +150,10 @@ class DepthState:
         self.tau, self.grad = tau, grad
 
 
+#: expected points per cell crossed where a majorant cell is 0 (OpticalDepthGradient.rate)
+EMPTY_CELL_POINTS = 0.5
+
+
 class OpticalDepthGradient(NullCollisionRule):
     r"""The derivative of a shadow ray's transmittance, whatever estimated its value:
     :math:`\partial T = -T \int \partial\sigma_t\,ds`, the integral taken over points
@@ -163,6 +167,12 @@ class OpticalDepthGradient(NullCollisionRule):
 
     def __init__(self, replay: Replay, after: mi.Spectrum):
         self.replay, self.after = replay, after
+
+    def rate(self, tracker, seg) -> mi.Float:
+        """The majorant, but at least :data:`EMPTY_CELL_POINTS` points per cell: where the
+        majorant is 0 the extinction is 0, not its derivative (a density grid's voxels
+        there, at 0, would otherwise never get a gradient from shadow rays)."""
+        return dr.maximum(seg.sigma_maj, EMPTY_CELL_POINTS * tracker.grid.cells_per_length)
 
     def start(self, tracker, ray, t_in, t_out, sampler, active):
         return DepthState(-dr.log(1.0 - sampler.next_1d(active)), mi.Spectrum(0.0))

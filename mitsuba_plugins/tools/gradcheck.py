@@ -84,11 +84,16 @@ def primal_mean(scene, params, direction: dict, step: float, integrator, seed: i
 
 
 def finite_difference(scene, params, direction: dict, h: float, integrator, seed: int,
-                      spp: int, weights=None) -> float:
+                      spp: int, weights=None, one_sided: bool = False) -> float:
     """Richardson-extrapolated central difference along ``direction`` with common random
-    numbers: ``(4 D(h) - D(2h)) / 3`` (error O(h^4)), ``D(h) = (f(+h) - f(-h)) / 2h``."""
+    numbers: ``(4 D(h) - D(2h)) / 3`` (error O(h^4)), ``D(h) = (f(+h) - f(-h)) / 2h``.
+    ``one_sided`` (a parameter at a bound, e.g. a density at 0): ``(4 f(h) - 3 f(0) -
+    f(2h)) / 2h`` (error O(h^2))."""
+    steps = (0.0, h, 2 * h) if one_sided else (-2 * h, -h, h, 2 * h)
     f = {s: primal_mean(scene, params, direction, s, integrator, seed, spp, weights)
-         for s in (-2 * h, -h, h, 2 * h)}
+         for s in steps}
+    if one_sided:
+        return (4 * f[h] - 3 * f[0.0] - f[2 * h]) / (2 * h)
     d1 = (f[h] - f[-h]) / (2 * h)
     d2 = (f[2 * h] - f[-2 * h]) / (4 * h)
     return (4 * d1 - d2) / 3
