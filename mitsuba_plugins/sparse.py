@@ -15,7 +15,8 @@ and the clamp padding beyond the grid are copies that lookups read. After an edi
 every copy is re-read from its owner by one gather, so gradients of lookups that read a
 copy land on the owner (the copies' entries of the exposed tensor get none and their
 values are ignored), and slot 0 stays zeros. Which bricks exist never changes: a voxel
-that no stored brick holds stays 0 and has no gradient (no lookup reads it).
+that no stored brick holds stays 0 and has no gradient (a lookup addressed to an empty
+brick reads slot 0).
 """
 from __future__ import annotations
 
@@ -96,12 +97,9 @@ class SparseGrid:
         v = e // c
         slot, offset = v // block, v % block
         local = mi.Vector3i(offset % SIDE, (offset // SIDE) % SIDE, offset // (SIDE * SIDE))
-        # brick coordinates (x, y, z) of every slot, from the indirection grid
-        bz, by, bx = np.nonzero(self.index_host)
-        coords = np.zeros((self.stored, 3), np.int32)
-        coords[self.index_host[bz, by, bx]] = np.stack([bx, by, bz], axis=1)
+        coords = self._slot_bricks()
         brick = mi.Vector3i(*(dr.gather(mi.Int32, mi.Int32(coords[:, k]), slot)
-                              for k in range(3)))
+                              for k in (2, 1, 0)))
         voxel = dr.clip(brick * BRICK + local, 0, mi.Vector3i(*self._size_i) - 1)
         home = voxel // BRICK
         source, found = dr.zeros(mi.UInt32, dr.width(e)), slot > 0
@@ -130,14 +128,19 @@ class SparseGrid:
         v = mine // c
         offset = v % block
         local = np.stack([offset // (SIDE * SIDE), (offset // SIDE) % SIDE, offset % SIDE], 1)
-        bz, by, bx = np.nonzero(self.index_host)
-        coords = np.zeros((self.stored, 3), np.int64)
-        coords[self.index_host[bz, by, bx]] = np.stack([bz, by, bx], axis=1)
-        voxel = coords[v // block] * BRICK + local
+        voxel = self._slot_bricks()[v // block] * BRICK + local
         out = np.zeros(self.shape, np.float32)
         out[voxel[:, 0], voxel[:, 1], voxel[:, 2], mine % c] = \
             np.asarray(values, np.float32).reshape(-1)[mine]
         return out
+
+    def _slot_bricks(self) -> np.ndarray:
+        """Brick coordinates ``(z, y, x)`` of every pool slot (slot 0: zeros), from the
+        indirection grid."""
+        bz, by, bx = np.nonzero(self.index_host)
+        coords = np.zeros((self.stored, 3), np.int32)
+        coords[self.index_host[bz, by, bx]] = np.stack([bz, by, bx], axis=1)
+        return coords
 
     def extrema(self) -> tuple:
         """``(maxima, minima)`` per slot and channel of the current pool (host)."""
