@@ -259,13 +259,18 @@ class GradientPass:
 def replay_vertex(replay: Replay, scene, media, ref, ds, shadow_medium, contribution,
                   f_attached, active_em, direction_value, after_vertex,
                   active_next) -> mi.Spectrum:
-    """The derivatives at one vertex: the emitter sample (its BSDF / phase value
-    ``f_attached`` and its shadow ray's transmittance, both in front of the detached
-    ``contribution``), then the sampled direction's value ``direction_value``
-    (attached) in front of ``after_vertex``, all the path gathers after this vertex.
-    Returns the tangent."""
-    grad = replay.factor(f_attached, contribution, active_em)
+    """The derivatives at one vertex: the emitter sample (its BSDF / phase value, which
+    ``f_attached()`` evaluates, and its shadow ray's transmittance, both in front of the
+    detached ``contribution``), then the sampled direction's value
+    (``direction_value()``) in front of ``after_vertex``, all the path gathers after this
+    vertex. Returns the tangent.
+
+    The values are evaluated here, each just before its derivative is propagated: in
+    forward mode ``dr.forward_to`` refuses ("edge ... outside of the current
+    dr.isolate_grad() scope") once a second attached evaluation of the same parameter
+    (the phase's ``g``, a BSDF's texture) exists before the first is propagated."""
+    grad = replay.factor(attached(f_attached), contribution, active_em)
     grad += shadow_pieces(scene, ref, ds, shadow_medium,
                           GradientPass(replay, media, contribution), None,
                           active_em & dr.any(contribution != 0))
-    return grad + replay.factor(direction_value, after_vertex, active_next)
+    return grad + replay.factor(attached(direction_value), after_vertex, active_next)

@@ -16,7 +16,7 @@ from mitsuba_plugins.contract import Tracker, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
-from mitsuba_plugins.replay import attached, replay_homogeneous, replay_vertex
+from mitsuba_plugins.replay import replay_homogeneous, replay_vertex
 from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
 from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
 from mitsuba_plugins.instrument import count, settings
@@ -226,12 +226,12 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                 replay, scene, media, ref, ds, shadow_medium,
                 dr.select(active_em, beta * emitter_contribution(
                     integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir), 0.0),
-                attached(lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
+                lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
                     phase_ctx, mei, ds.d, scattered)[0]), bsdf.eval(bsdf_ctx, si, wo,
-                                                                    on_surface))),
-                active_em, attached(lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
+                                                                    on_surface)),
+                active_em, lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
                     phase_ctx, mei, wo_phase, scattered)[0]), bsdf.eval(
-                        bsdf_ctx, si, bs.wo, on_surface))),
+                        bsdf_ctx, si, bs.wo, on_surface)),
                 replay.L_primal - L, active_next & (scattered | (on_surface & ~mi.has_flag(
                     bs.sampled_type, mi.BSDFFlags.Delta))))
 
