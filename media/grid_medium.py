@@ -11,7 +11,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import gridio, majorant, placement, stores
+from mitsuba_plugins import blackbody, gridio, majorant, placement, stores
 from mitsuba_plugins.dda import ray_box
 from mitsuba_plugins.params import Params, PluginParameterError, floats
 from mitsuba_plugins.spectra import Multiplier
@@ -61,6 +61,31 @@ class GridMedium(mi.Medium):
          ``flames``, values >= 0) that multiplies ``emission`` (which defaults to 1 when
          this is given), placed by its own index-to-world transform (then ``to_world``),
          interpolated as the density, stored in bricks. (Default: none)
+     * - albedo_grid
+       - |string|
+       - Colour grid: a grid of the same ``.vdb`` file (float or vec3s, e.g. ``Cd`` or
+         ``color``) that multiplies ``albedo`` (which defaults to 1 when this is given),
+         placed by its own transform (then ``to_world``), interpolated as the density,
+         stored in bricks; the product must stay in [0, 1]. (Default: none)
+     * - temperature_grid
+       - |string|
+       - Fire: a float grid of the same ``.vdb`` file (e.g. ``temperature``) whose
+         temperature :math:`T = (v - o)\,s` makes the emitted radiance ``emission`` x
+         the blackbody spectrum normalised to a peak of 1 (pbrt-v4's ``nanovdb`` rule;
+         0 at or below 100 K; :mod:`mitsuba_plugins.blackbody`: linear sRGB in RGB
+         variants, clamped at 0, Planck's law at the path's wavelengths in spectral
+         ones, where ``emission`` is then a plain factor, not an illuminant: spectral and
+         RGB renders agree). ``emission`` defaults to 1; not with ``emission_grid``.
+         (Default: none)
+     * - temperature_offset
+       - |float|
+       - :math:`o`, subtracted from the grid's value first (pbrt's
+         ``temperatureoffset``). (Default: 0)
+     * - temperature_scale
+       - |float|
+       - :math:`s`, kelvin per unit of the grid after the offset, > 0 (pbrt's
+         ``temperaturescale``); the hottest voxel must stay at or below 1e5 K.
+         (Default: 1)
      * - interpolation
        - |string|
        - ``trilinear`` or ``nearest`` lookups of the ``filename`` grid. (Default: trilinear)
@@ -128,9 +153,11 @@ class GridMedium(mi.Medium):
 
     ALLOWED = ("filename", "grid", "sigma_t", "scale", "albedo", "emission", "interpolation",
                "to_world", "use_grid_bbox", "majorant_resolution", "has_spectral_extinction",
-               "sample_emitters", "storage", "emission_grid")
+               "sample_emitters", "storage", "emission_grid", "temperature_grid",
+               "temperature_offset", "temperature_scale", "albedo_grid")
     FILE_ONLY = ("interpolation", "to_world", "use_grid_bbox", "grid", "storage",
-                 "emission_grid")
+                 "emission_grid", "temperature_grid", "temperature_offset",
+                 "temperature_scale", "albedo_grid")
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -142,11 +169,17 @@ class GridMedium(mi.Medium):
             raise PluginParameterError(
                 f"grid_medium: parameter 'scale' = {scale:g} is invalid; allowed: a finite "
                 "number >= 0 that float32 holds (at most 3.4e38)")
-        self.albedo = p.volume("albedo", 0.75, hi=1.0)
+        # 1 when only an albedo_grid gives it
+        self.albedo = p.volume("albedo", 1.0 if p.has("albedo_grid") else 0.75, hi=1.0)
         stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
-        self.emission = p.volume("emission", None, illuminant=True) \
+        # with a temperature grid, emission scales Planck's spectrum itself: in spectral
+        # variants a plain multiplier, not an illuminant (whose d65 shape would tint it)
+        self.emission = p.volume("emission", None, illuminant=not p.has("temperature_grid")) \
             if p.has("emission") else None
         self.emission_grid = None   # (SparseGrid, GridValues, to_local) of emission_grid
+        #: (SparseGrid, to_local, offset, scale) of temperature_grid
+        self.temperature = None
+        self.albedo_grid = None     # (SparseGrid, GridValues, to_local) of albedo_grid
         self.cells = p.int("majorant_resolution", majorant.DEFAULT_RESOLUTION, lo=1, hi=1024)
         #: not given: coarsen the bounds per grid (majorant.auto_resolution)
         self.auto_cells = not p.has("majorant_resolution")
@@ -191,7 +224,7 @@ class GridMedium(mi.Medium):
         if p.has("to_world"):
             placement.check_invertible(p.props["to_world"])
         is_vdb = self.filename.lower().endswith(".vdb")
-        for name in ("grid", "emission_grid"):
+        for name in ("grid", "emission_grid", "temperature_grid", "albedo_grid"):
             if p.has(name) and not is_vdb:
                 raise PluginParameterError(
                     f"grid_medium: parameter '{name}' selects a grid of a .vdb file; "
@@ -199,8 +232,13 @@ class GridMedium(mi.Medium):
         if p.has("emission_grid"):
             if self.emission is None:
                 self.emission = p.volume("emission", 1.0, illuminant=True)
-            self.emission_grid = stores.load_emission_grid(self.filename,
-                                                           p.props["emission_grid"], to_world)
+            self.emission_grid = stores.load_side_grid(self.filename,
+                                                       p.props["emission_grid"], to_world)
+        self._load_temperature(p, to_world)
+        if p.has("albedo_grid"):
+            self.albedo_grid = stores.load_side_grid(self.filename, p.props["albedo_grid"],
+                                                     to_world, "albedo_grid")
+            self._check_albedo_grid()
         storage = p.choice("storage", "auto" if is_vdb else "dense", stores.STORAGES)
         self.sigma_t_factor = mi.Color3f(factor)
         self.multiplier = Multiplier(factor)
@@ -223,6 +261,54 @@ class GridMedium(mi.Medium):
         z, y, x = header.shape[:3]
         # voxels per local unit on each axis, and whether lookups are trilinear
         self._voxels = (mi.Vector3f(x, y, z), self.interpolation == "trilinear")
+
+    def _load_temperature(self, p: Params, to_world: mi.ScalarTransform4f) -> None:
+        """``temperature_grid`` and its offset and scale (fire, :mod:`blackbody`)."""
+        offset = p.float("temperature_offset", 0.0)
+        scale = p.float("temperature_scale", 1.0, lo=0.0)
+        if not p.has("temperature_grid"):
+            for name in ("temperature_offset", "temperature_scale"):
+                if p.has(name):
+                    raise PluginParameterError(
+                        f"grid_medium: parameter '{name}' applies to a 'temperature_grid'; "
+                        "give one (the name of a float grid of the .vdb, e.g. 'temperature')")
+            return
+        name = p.props["temperature_grid"]
+        if p.has("emission_grid"):
+            raise PluginParameterError(
+                "grid_medium: parameters 'temperature_grid' and 'emission_grid' both set the "
+                "emitted radiance; give one of them")
+        if scale <= 0.0:
+            raise PluginParameterError(
+                f"grid_medium: parameter 'temperature_scale' = {scale:g} is out of range; "
+                "allowed: > 0 (kelvin per unit of the grid)")
+        if self.emission is None:
+            self.emission = p.volume("emission", 1.0)
+        grid, _, to_local = stores.load_side_grid(self.filename, name, to_world,
+                                                  "temperature_grid", channels=(1,))
+        hottest = (float(grid.extrema()[0].max(initial=0.0)) - offset) * scale
+        if hottest > blackbody.T_MAX:
+            raise PluginParameterError(
+                f"grid_medium: temperature_grid {name!r} of '{self.filename}' reaches "
+                f"{hottest:.4g} K with temperature_offset = {offset:g} and temperature_scale "
+                f"= {scale:g}; allowed: at most {blackbody.T_MAX:g} K (check the grid's "
+                "units and temperature_scale)")
+        self.temperature = (grid, to_local, offset, scale)
+
+    def _check_albedo_grid(self) -> None:
+        """``albedo`` x ``albedo_grid`` within [0, 1] (the grid's values are >= 0)."""
+        grid, values, _ = self.albedo_grid
+        pool = grid.pool.numpy().reshape(-1, values.channels)
+        if values.upsampled:      # scale x model spectrum: bounded by their maxima
+            upper, _ = values.factors(pool)
+            top = float((upper[:, 0] * upper[:, 1]).max(initial=0.0))
+        else:
+            top = float(pool.max(initial=0.0))
+        highest = top * stores.volume_max(self.albedo, slack=0.0)
+        if highest > 1.0 + 1e-6:
+            raise PluginParameterError(
+                f"grid_medium: parameters 'albedo' x 'albedo_grid' reach {highest:.4g}; "
+                "allowed: albedo values in [0, 1] (scale the grid or set 'albedo')")
 
     # -- what the store holds, for tools and tests -----------------------------------
     @property
@@ -303,7 +389,13 @@ class GridMedium(mi.Medium):
 
     def eval_albedo(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         """Single-scattering albedo at ``mei.p`` (per channel)."""
-        return self.albedo.eval(mei, active)
+        albedo = self.albedo.eval(mei, active)
+        if self.albedo_grid is not None:
+            grid, values, to_local = self.albedo_grid
+            albedo = albedo * stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
+                                                self.interpolation == "trilinear",
+                                                mei.wavelengths, active)
+        return albedo
 
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         sigma_t = self.eval_sigma_t(mei, active)
@@ -326,6 +418,11 @@ class GridMedium(mi.Medium):
             radiance *= stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
                                           self.interpolation == "trilinear", mei.wavelengths,
                                           active)
+        if self.temperature is not None:
+            grid, to_local, offset, scale = self.temperature
+            value = grid.eval(mi.Transform4f(to_local) @ mei.p,
+                              self.interpolation == "trilinear", active)
+            radiance *= blackbody.spectrum((value - offset) * scale, mei.wavelengths, active)
         return radiance
 
     def traverse(self, callback):
@@ -340,6 +437,9 @@ class GridMedium(mi.Medium):
             callback.put("emission", self.emission, mi.ParamFlags.Differentiable)
         if self.emission_grid is not None and not self.emission_grid[1].converted:
             callback.put("emission_bricks", self.emission_grid[0].bricks(),
+                         mi.ParamFlags.Differentiable)
+        if self.albedo_grid is not None and not self.albedo_grid[1].converted:
+            callback.put("albedo_bricks", self.albedo_grid[0].bricks(),
                          mi.ParamFlags.Differentiable)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
@@ -361,6 +461,10 @@ class GridMedium(mi.Medium):
         self.store.changed(keys)
         if self.emission_grid is not None:
             stores.synchronize(self.emission_grid[0], "emission_bricks", keys)
+        if self.albedo_grid is not None:
+            stores.synchronize(self.albedo_grid[0], "albedo_bricks", keys)
+            if keys is None or any(k.startswith("albedo") for k in keys):
+                self._check_albedo_grid()
         self._update_majorants()
 
     def to_string(self) -> str:

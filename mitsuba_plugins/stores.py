@@ -288,13 +288,20 @@ def read_bricks(header, what: str, values: GridValues) -> bricks.BrickBuilder:
     return builder
 
 
-def load_emission_grid(path: str, name: str, to_world: mi.ScalarTransform4f):
+def load_side_grid(path: str, name: str, to_world: mi.ScalarTransform4f,
+                   parameter: str = "emission_grid", channels=(1, 3)):
     """``(SparseGrid, GridValues, world -> local)`` of grid ``name`` of a .vdb (values
-    >= 0)."""
+    >= 0), the grid that ``grid_medium``'s ``parameter`` names (its errors say so), of
+    ``channels`` channels in the file."""
     from mitsuba_plugins.sparse import SparseGrid
     header = gridio.read_header(path, name)
+    if header.channels not in channels:
+        raise PluginParameterError(
+            f"grid_medium: parameter '{parameter}' = {name!r} names a grid of "
+            f"{header.channels} channels in '{path}'; allowed: "
+            + " or ".join({1: "a float grid", 3: "a vec3 grid"}[c] for c in channels))
     values = GridValues(header.channels)
-    builder = read_bricks(header, f"emission_grid {name!r}", values)
+    builder = read_bricks(header, f"{parameter} {name!r}", values)
     grid = SparseGrid((*header.shape[:3], values.channels), builder.index,
                       builder.pool_chunks(), builder.stored)
     return grid, values, placement.vdb_to_world(header, to_world).inverse()

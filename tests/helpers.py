@@ -127,10 +127,10 @@ def camera(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None, target=(0.0, 
 def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4, as_dict=False):
     """A unit sphere holding ``medium`` behind ``bsdf`` (null by default) over a
     diffuse floor, lit by a small spherical light and a constant environment (loaded,
-    or its description with ``as_dict``)."""
+    or its description with ``as_dict``); ``env=0``: no environment (a constant of
+    radiance 0 cannot be built in spectral variants: "no probability mass found")."""
     scene = {
         "type": "scene",
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": env}},
         "light": {"type": "sphere", "center": [1.6, 2.2, 1.2], "radius": 0.25,
                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 40.0}}},
         "floor": {"type": "rectangle",
@@ -139,6 +139,8 @@ def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4, as_dic
                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}},
         "sensor": sensor or camera(),
     }
+    if env:
+        scene["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": env}}
     if medium is not None:
         scene["ball"] = {"type": "sphere", "bsdf": bsdf or {"type": "null"}, "interior": medium}
     scene.update(extra or {})

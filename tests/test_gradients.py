@@ -19,7 +19,7 @@ import pytest
 from helpers import SMOKE, camera, grid, load, make_vdb, media_scene
 from mitsuba_plugins.tools import gradcheck
 
-TESTS = 17
+TESTS = 18
 ALPHA = 1.0 - (1.0 - 0.01) ** (1.0 / TESTS)
 SEEDS = range(8)
 SPP_GRAD = 128
@@ -233,31 +233,35 @@ def test_density_grows_where_the_grid_is_empty(tmp_path):
 
 
 def test_sparse_and_emission_grids_and_albedo_grid(tmp_path):
-    """A .vdb with a density and a 'temperature' emission grid stored sparse, and an albedo
-    gridvolume: the stored bricks of both grids and the albedo grid, against finite
-    differences."""
+    """A .vdb with a density, a 'temperature' emission grid and a 'tint' albedo_grid
+    stored sparse, and an albedo gridvolume: the stored bricks of the three grids and the
+    gridvolume's data, against finite differences."""
     from mitsuba_plugins import gridio
     n = 16
     z, y, x = np.meshgrid(*(np.linspace(-1, 1, n),) * 3, indexing="ij")
     r2 = x * x + y * y + z * z
     density = np.where(r2 < 0.8, 2.0 * np.exp(-2.0 * r2), 0.0).astype(np.float32)
     temperature = np.where(r2 < 0.3, 3.0 * (0.3 - r2) / 0.3, 0.0).astype(np.float32)
+    tint = np.where(r2 < 0.9, 0.7 + 0.3 * np.exp(-3.0 * r2), 0.0).astype(np.float32)
     make_vdb(tmp_path / "fire.vdb", """
-        for name, values in (("density", density), ("temperature", temperature)):
+        for name, values in (("density", density), ("temperature", temperature),
+                             ("tint", tint)):
             g = vdb.FloatGrid(); g.name = name
             g.copyFromArray(values); g.transform = vdb.createLinearTransform(1.0 / 16)
             grids.append(g)
-    """, density=density, temperature=temperature)
+    """, density=density, temperature=temperature, tint=tint)
     rng = np.random.default_rng(2)
     gridio.write_vol(str(tmp_path / "albedo.vol"),
                      rng.uniform(0.5, 0.95, (4, 4, 4, 1)).astype(np.float32))
     medium = grid(filename=str(tmp_path / "fire.vdb"), storage="sparse",
                   emission_grid="temperature",
                   emission={"type": "rgb", "value": [2.0, 1.0, 0.5]},
-                  albedo={"type": "gridvolume", "filename": str(tmp_path / "albedo.vol")})
+                  albedo={"type": "gridvolume", "filename": str(tmp_path / "albedo.vol")},
+                  albedo_grid="tint")
     scene = media_scene(hg(medium), sensor=camera(res=8))
     compare_with_finite_differences(
-        scene, [f"{GRID}.bricks", f"{GRID}.emission_bricks", f"{GRID}.albedo.data"],
+        scene, [f"{GRID}.bricks", f"{GRID}.emission_bricks", f"{GRID}.albedo.data",
+                f"{GRID}.albedo_bricks"],
         {"type": "volpath_delta", "max_depth": DEPTH}, "sparse-emission-albedo")
 
 
