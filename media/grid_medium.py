@@ -391,11 +391,15 @@ class GridMedium(mi.Medium):
         """Single-scattering albedo at ``mei.p`` (per channel)."""
         albedo = self.albedo.eval(mei, active)
         if self.albedo_grid is not None:
-            grid, values, to_local = self.albedo_grid
-            albedo = albedo * stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
-                                                self.interpolation == "trilinear",
-                                                mei.wavelengths, active)
+            albedo = albedo * self._side_value(self.albedo_grid, mei, active)
         return albedo
+
+    def _side_value(self, side, mei: mi.MediumInteraction3f, active):
+        """The value of a side grid ``(SparseGrid, GridValues, to_local)`` at ``mei.p``
+        as a spectrum (``emission_grid``, ``albedo_grid``)."""
+        grid, values, to_local = side
+        return stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
+                                 self.interpolation == "trilinear", mei.wavelengths, active)
 
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         sigma_t = self.eval_sigma_t(mei, active)
@@ -414,10 +418,7 @@ class GridMedium(mi.Medium):
             return mi.UnpolarizedSpectrum(0.0)
         radiance = mi.UnpolarizedSpectrum(self.emission.eval(mei, active))
         if self.emission_grid is not None:
-            grid, values, to_local = self.emission_grid
-            radiance *= stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
-                                          self.interpolation == "trilinear", mei.wavelengths,
-                                          active)
+            radiance *= self._side_value(self.emission_grid, mei, active)
         if self.temperature is not None:
             grid, to_local, offset, scale = self.temperature
             value = grid.eval(mi.Transform4f(to_local) @ mei.p,

@@ -222,16 +222,17 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
                                                          wo, f_l, p_dir), L)
         if dr.hint(replay is not None, mode="scalar"):
+            def vertex_value(d_world, wo_local):
+                """The phase (medium) or BSDF (surface) value towards a direction, as a
+                function: replay_vertex evaluates it attached, when it needs it."""
+                return lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
+                    phase_ctx, mei, d_world, scattered)[0]), bsdf.eval(
+                        bsdf_ctx, si, wo_local, on_surface))
             grad += replay_vertex(
                 replay, scene, media, ref, ds, shadow_medium,
                 dr.select(active_em, beta * emitter_contribution(
                     integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir), 0.0),
-                lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
-                    phase_ctx, mei, ds.d, scattered)[0]), bsdf.eval(bsdf_ctx, si, wo,
-                                                                    on_surface)),
-                active_em, lambda: dr.select(scattered, mi.Spectrum(phase.eval_pdf(
-                    phase_ctx, mei, wo_phase, scattered)[0]), bsdf.eval(
-                        bsdf_ctx, si, bs.wo, on_surface)),
+                vertex_value(ds.d, wo), active_em, vertex_value(wo_phase, bs.wo),
                 replay.L_primal - L, active_next & (scattered | (on_surface & ~mi.has_flag(
                     bs.sampled_type, mi.BSDFFlags.Delta))))
 
