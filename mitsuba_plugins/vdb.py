@@ -285,10 +285,42 @@ def iter_vdb_slabs(header, slab_bytes: int):
             yield z0, np.frombuffer(raw, dtype="<f4").reshape(k, y, x, c)
 
 
+#: which reader cuts bricks: "auto" (the compiled one where it was built, else the
+#: worker), "extension" (fails if it was not built) or "worker"
+READER_VARIABLE = "MITSUBA_PLUGINS_VDB_READER"
+
+
+def leaf_reader():
+    """The compiled leaf-level reader (``mitsuba_plugins._openvdb_bricks``, built at install
+    where Debian's libopenvdb-dev is present), or None where it is absent or
+    ``$MITSUBA_PLUGINS_VDB_READER`` is ``worker``."""
+    choice = os.environ.get(READER_VARIABLE, "auto")
+    if choice not in ("auto", "extension", "worker"):
+        raise ValueError(f"${READER_VARIABLE} = {choice!r}; allowed: auto, extension, worker")
+    if choice == "worker":
+        return None
+    try:
+        from mitsuba_plugins import _openvdb_bricks
+    except ImportError as error:
+        if choice == "extension":
+            raise ImportError(
+                f"${READER_VARIABLE}=extension, but mitsuba_plugins._openvdb_bricks is not "
+                f"built ({error}): apt-get install -y libopenvdb-dev libboost-dev g++, then "
+                "reinstall the package") from error
+        return None
+    return _openvdb_bricks
+
+
 def iter_vdb_bricks(header):
     """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
-    header's box (:mod:`mitsuba_plugins.bricks`), cut by the worker in tiles (it never
-    holds a whole row of the box); only stored bricks cross the pipe."""
+    header's box (:mod:`mitsuba_plugins.bricks`). Cut by the compiled leaf-level reader
+    (:func:`leaf_reader`) from OpenVDB's leaf nodes and tiles where it is built, else by
+    the worker in tiles (it never holds a whole row of the box; only stored bricks cross
+    the pipe). Both give the same bricks (tests/test_vdb_files.py)."""
+    reader = leaf_reader()
+    if reader is not None:
+        yield from _leaf_bricks(reader, header)
+        return
     from mitsuba_plugins.bricks import BRICK, SIDE
     z, _, _, c = header.shape
     with _reader(header, "bricks") as read:
@@ -300,6 +332,26 @@ def iter_vdb_bricks(header):
             cols = np.frombuffer(read(8 * n), dtype="<i4").reshape(2, n).astype(np.intp)
             blocks = np.frombuffer(read(4 * n * SIDE ** 3 * c), dtype="<f4")
             yield int(row), (cols[0], cols[1]), blocks.reshape(n, SIDE, SIDE, SIDE, c)
+
+
+def _leaf_bricks(reader, header):
+    from mitsuba_plugins.bricks import BRICK
+    z, y, x, c = header.shape
+    i0, j0, k0 = header.index_min
+    try:
+        coords, blocks = reader.bricks(os.fspath(header.path), header.vdb_grid, i0, j0, k0,
+                                       x, y, z)
+    except MemoryError:
+        _fail(header.path, f"out of memory reading grid {header.vdb_grid!r}")
+    except Exception as error:      # OpenVDB's IoError, ...: one line naming the file
+        _fail(header.path, f"reading grid {header.vdb_grid!r} failed ({error})")
+    if c == 1:
+        blocks = blocks[..., None]
+    ends = np.searchsorted(coords[:, 0], np.arange(-(-z // BRICK) + 1), side="left")
+    for row in range(ends.size - 1):
+        rows = slice(ends[row], ends[row + 1])
+        cols = coords[rows, 1:].astype(np.intp)
+        yield row, (cols[:, 0], cols[:, 1]), blocks[rows]
 
 
 def write_vdb(path, name: str, shape, index_to_world: np.ndarray, slabs) -> None:

@@ -133,6 +133,7 @@ class MajorantSegments:
         need_cell = exhausted & (t >= seg.t_cell) if refine else exhausted
         active = active & ~(need_cell & (seg.dda.t >= seg.dda.t_end))
         fetch = active & need_cell
+        instrument.count("segments", fetch)
         _, t1, maj, low, dda = tracker.grid.next_bounds(seg.dda, fetch, minorant=self.minorant)
         t_cell = dr.select(fetch, t1, seg.t_cell)
         sigma_cell = dr.select(fetch, maj, seg.sigma_cell)
