@@ -4,6 +4,8 @@
 // (setup.py: optional); mitsuba_plugins/vdb.py falls back to the pyopenvdb worker
 // process otherwise. The result equals the worker's (tests/test_vdb_files.py).
 //
+// info(path, address) -> dict: what the worker's info reports, without min / max; the grid
+//   read stays in memory for the bricks() call on it that follows.
 // bricks(path, address, i0, j0, k0, nx, ny, nz) -> (coords, blocks)
 //   The box is index [i0, i0 + nx) x [j0, j0 + ny) x [k0, k0 + nz) (x, y, z). Values
 //   are those OpenVDB's accessor returns: leaf voxels (active or not) and active tiles;
@@ -192,18 +194,91 @@ struct Cutter {
     }
 };
 
+// The grid info() read last, kept for the bricks() call that follows it on the same grid.
+struct Kept {
+    std::string path, address;
+    openvdb::GridBase::Ptr grid;
+} kept;
+
+openvdb::GridBase::Ptr read_grid(const std::string &path, const std::string &address) {
+    if (kept.grid && kept.path == path && kept.address == address) {
+        openvdb::GridBase::Ptr grid = kept.grid;
+        kept = Kept{};
+        return grid;
+    }
+    kept = Kept{};
+    openvdb::initialize();
+    py::gil_scoped_release release;
+    openvdb::io::File file(path);
+    file.open(false);                                 // no delayed loading: read it now
+    openvdb::GridBase::Ptr grid = file.readGrid(address);
+    file.close();
+    return grid;
+}
+
+py::object listed(const float &v) { return py::float_(v); }
+py::object listed(const openvdb::Vec3s &v) { return py::make_tuple(v[0], v[1], v[2]); }
+
+template <typename GridT>
+py::object background(const openvdb::GridBase::Ptr &base) {
+    auto g = openvdb::gridPtrCast<GridT>(base);
+    return g ? listed(g->background()) : py::none();
+}
+
+// What mitsuba_plugins._vdb_worker's info() reports without the value range; the grid
+// stays in memory for the next bricks() call on it.
+py::dict info(const std::string &path, const std::string &address) {
+    openvdb::GridBase::Ptr grid = read_grid(path, address);
+    py::dict out;
+    out["name"] = grid->getName();
+    out["address"] = address;
+    out["type"] = grid->valueType();
+    out["class"] = openvdb::GridBase::gridClassToString(grid->getGridClass());
+    const openvdb::Index64 count = grid->activeVoxelCount();
+    out["active_voxels"] = count;
+    py::object bg = background<openvdb::FloatGrid>(grid);
+    if (bg.is_none()) bg = background<openvdb::Vec3SGrid>(grid);
+    out["background"] = bg;
+    if (count) {
+        const openvdb::CoordBBox box = grid->evalActiveVoxelBoundingBox();
+        out["index_min"] = py::make_tuple(box.min().x(), box.min().y(), box.min().z());
+        out["index_max"] = py::make_tuple(box.max().x(), box.max().y(), box.max().z());
+    } else {
+        out["index_min"] = py::none();
+        out["index_max"] = py::none();
+    }
+    out["min"] = py::none();
+    out["max"] = py::none();
+    const openvdb::math::Transform &t = grid->transform();
+    out["transform_type"] = t.mapType();
+    out["linear"] = t.isLinear();
+    if (t.isLinear()) {
+        const openvdb::Vec3d o = t.indexToWorld(openvdb::Vec3d(0, 0, 0));
+        py::list rows;
+        for (int r = 0; r < 3; ++r) {
+            py::list row;
+            for (int c = 0; c < 3; ++c) {
+                openvdb::Vec3d e(0, 0, 0);
+                e[c] = 1;
+                row.append(t.indexToWorld(e)[r] - o[r]);
+            }
+            row.append(o[r]);
+            rows.append(row);
+        }
+        rows.append(py::make_tuple(0.0, 0.0, 0.0, 1.0));
+        out["index_to_world"] = rows;
+    } else {
+        out["index_to_world"] = py::none();
+    }
+    out["half_float"] = grid->saveFloatAsHalf();
+    kept = Kept{path, address, grid};
+    return out;
+}
+
 py::tuple bricks(const std::string &path, const std::string &address, int i0, int j0, int k0,
                  int nx, int ny, int nz) {
     if (nx <= 0 || ny <= 0 || nz <= 0) throw std::invalid_argument("empty box");
-    openvdb::initialize();
-    openvdb::GridBase::Ptr base;
-    {
-        py::gil_scoped_release release;
-        openvdb::io::File file(path);
-        file.open(false);                             // no delayed loading: read it now
-        base = file.readGrid(address);
-        file.close();
-    }
+    openvdb::GridBase::Ptr base = read_grid(path, address);
     if (auto g = openvdb::gridPtrCast<openvdb::FloatGrid>(base))
         return Cutter<openvdb::FloatGrid, 1>(i0, j0, k0, nx, ny, nz).run(*g);
     if (auto g = openvdb::gridPtrCast<openvdb::Vec3SGrid>(base))
@@ -218,6 +293,7 @@ PYBIND11_MODULE(_openvdb_bricks, m) {
     m.doc() = "Leaf-level .vdb reader: one grid cut into mitsuba_plugins.bricks' bricks";
     m.attr("BRICK") = BRICK;
     m.attr("SIDE") = SIDE;
+    m.def("info", &info, py::arg("path"), py::arg("address"));
     m.def("bricks", &bricks, py::arg("path"), py::arg("address"), py::arg("i0"),
           py::arg("j0"), py::arg("k0"), py::arg("nx"), py::arg("ny"), py::arg("nz"));
 }

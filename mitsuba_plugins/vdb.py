@@ -171,7 +171,8 @@ def grid_list(path) -> list:
     """The grids of ``path`` as :class:`~mitsuba_plugins.vdbfile.GridEntry` (read from the
     header, without OpenVDB)."""
     from mitsuba_plugins.vdbfile import VdbHeaderError, read_grid_list
-    openvdb_python(path)           # reading a .vdb needs it: say so first
+    if leaf_reader() is None:
+        openvdb_python(path)       # reading a .vdb needs it: say so first
     try:
         return read_grid_list(path)
     except VdbHeaderError as error:
@@ -228,7 +229,16 @@ def read_vdb_header(path, grid: str):
     reason = _unsupported(entry)
     if reason:
         _fail(path, f"grid {entry.address!r} {reason}")
-    g = vdb_info(path, value_range=False, addresses=[entry.address])[0]
+    reader = leaf_reader()
+    if reader is None:
+        g = vdb_info(path, value_range=False, addresses=[entry.address])[0]
+    else:      # in this process; OpenVDB's grid stays loaded for iter_vdb_bricks
+        try:
+            g = reader.info(os.fspath(path), entry.address)
+        except MemoryError:
+            _fail(path, f"out of memory reading grid {entry.address!r}")
+        except Exception as error:      # OpenVDB's IoError, ...: one line naming the file
+            _fail(path, f"reading grid {entry.address!r} failed ({error})")
     grid = entry.address
     if "level" in str(g.get("class", "")).lower():
         _fail(path, f"grid {grid!r} is a level set; allowed: a fog volume (a level set is a "

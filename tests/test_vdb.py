@@ -143,6 +143,7 @@ def test_corrupt_and_truncated_files_are_named(tmp_path):
 def test_missing_openvdb_names_the_package(tmp_path, monkeypatch):
     (tmp_path / "x.vdb").write_bytes(b"x")
     monkeypatch.setenv(vdb.PYTHON_VARIABLE, sys.executable)   # the venv: no pyopenvdb
+    monkeypatch.setenv(vdb.READER_VARIABLE, "worker")          # nor the compiled reader
     with pytest.raises(gridio.GridFileError, match="apt-get install -y python3-openvdb"):
         gridio.read_header(tmp_path / "x.vdb")
 
