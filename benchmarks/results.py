@@ -55,7 +55,11 @@ GALLERY = [
     ("smoke", VOLUME, MEDIA_REFERENCE),
     ("sparse", VOLUME, MEDIA_REFERENCE),
     ("chromatic", VOLUME, MEDIA_REFERENCE),
+    # Mitsuba's built-ins ignore medium emission: ours only (scenes/fire.xml)
+    ("fire", VOLUME[:2], MEDIA_REFERENCE),
 ]
+#: benchmarks/underflow.py's table and panel, included as a section when present
+UNDERFLOW = ROOT / "benchmarks" / "results" / "underflow.md"
 HEADLINE = "sparse"   # the README's plot
 SCALE_NOTE = (
     "Memory stays bounded without any splitting: in Dr.Jit's LLVM backend a whole render "
@@ -297,6 +301,10 @@ def write_docs(results, scale_rows, meta) -> str:
                   "```", report.legend(result), "```", "",
                   f"![{name} curves]({FIGURES.name}/{name}_curves.png)", "",
                   f"![{name} panel]({FIGURES.name}/{name}_panel.png)", ""]
+    if UNDERFLOW.exists():    # its own run (python3 benchmarks/underflow.py)
+        body = UNDERFLOW.read_text().splitlines()
+        parts += ["## Where volpath goes black (mitsuba3 #336)", "", *body[1:]]
+        parts = [line.replace("../../docs/results/", f"{FIGURES.name}/") for line in parts]
     if scale_rows:
         parts += ["## Scale", "",
               "Each configuration in a fresh process; render time is the median of 3 renders "
