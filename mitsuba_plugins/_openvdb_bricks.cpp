@@ -21,6 +21,8 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include <malloc.h>
+
 #include <array>
 #include <cstdint>
 #include <cstring>
@@ -278,13 +280,21 @@ py::dict info(const std::string &path, const std::string &address) {
 py::tuple bricks(const std::string &path, const std::string &address, int i0, int j0, int k0,
                  int nx, int ny, int nz) {
     if (nx <= 0 || ny <= 0 || nz <= 0) throw std::invalid_argument("empty box");
-    openvdb::GridBase::Ptr base = read_grid(path, address);
-    if (auto g = openvdb::gridPtrCast<openvdb::FloatGrid>(base))
-        return Cutter<openvdb::FloatGrid, 1>(i0, j0, k0, nx, ny, nz).run(*g);
-    if (auto g = openvdb::gridPtrCast<openvdb::Vec3SGrid>(base))
-        return Cutter<openvdb::Vec3SGrid, 3>(i0, j0, k0, nx, ny, nz).run(*g);
-    throw std::invalid_argument("grid " + address + " holds " + base->valueType() +
-                                " values; allowed: float, half, vec3s");
+    py::tuple out;
+    {
+        openvdb::GridBase::Ptr base = read_grid(path, address);
+        if (auto g = openvdb::gridPtrCast<openvdb::FloatGrid>(base))
+            out = Cutter<openvdb::FloatGrid, 1>(i0, j0, k0, nx, ny, nz).run(*g);
+        else if (auto g = openvdb::gridPtrCast<openvdb::Vec3SGrid>(base))
+            out = Cutter<openvdb::Vec3SGrid, 3>(i0, j0, k0, nx, ny, nz).run(*g);
+        else
+            throw std::invalid_argument("grid " + address + " holds " + base->valueType() +
+                                        " values; allowed: float, half, vec3s");
+    }
+    // The tree is freed: hand its pages back now, before the caller uploads the bricks
+    // (glibc keeps freed memory otherwise; measured +100 MB of peak at 1024^3).
+    malloc_trim(0);
+    return out;
 }
 
 }  // namespace
