@@ -6,6 +6,7 @@
 //
 // info(path, address) -> dict: what the worker's info reports, without min / max; the grid
 //   read stays in memory for the bricks() call on it that follows.
+// write(path, name, data, ijk, voxel_size, compression, half): one grid, for tests.
 // bricks(path, address, i0, j0, k0, nx, ny, nz) -> (coords, blocks)
 //   The box is index [i0, i0 + nx) x [j0, j0 + ny) x [k0, k0 + nz) (x, y, z). Values
 //   are those OpenVDB's accessor returns: leaf voxels (active or not) and active tiles;
@@ -17,6 +18,7 @@
 #include <openvdb/io/File.h>
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -297,6 +299,53 @@ py::tuple bricks(const std::string &path, const std::string &address, int i0, in
     return out;
 }
 
+// Writes one grid as OpenVDB's own library does, with the compression chosen: files of
+// every kind the readers must take (tests/test_vdb_reader.py; pyopenvdb cannot choose).
+// data: float32 (z, y, x) or (z, y, x, 3); voxel (i, j, k) of the file = data[k, j, i]
+// placed at ijk + (i, j, k); zero values stay inactive background.
+void write_grid(const std::string &path, const std::string &name,
+           py::array_t<float, py::array::c_style | py::array::forcecast> data,
+           std::array<int, 3> ijk, double voxel_size, const std::string &compression,
+           bool half) {
+    uint32_t flags;
+    if (compression == "zip") flags = openvdb::io::COMPRESS_ZIP | openvdb::io::COMPRESS_ACTIVE_MASK;
+    else if (compression == "blosc") flags = openvdb::io::COMPRESS_BLOSC | openvdb::io::COMPRESS_ACTIVE_MASK;
+    else if (compression == "none") flags = openvdb::io::COMPRESS_NONE;
+    else throw std::invalid_argument("compression '" + compression +
+                                     "'; allowed: zip, blosc, none");
+    const int c = data.ndim() == 4 ? int(data.shape(3)) : 1;
+    if ((data.ndim() != 3 && data.ndim() != 4) || (c != 1 && c != 3))
+        throw std::invalid_argument("data: (z, y, x) or (z, y, x, 3) values");
+    openvdb::initialize();
+    const int nz = int(data.shape(0)), ny = int(data.shape(1)), nx = int(data.shape(2));
+    const float *v = data.data();
+    openvdb::GridBase::Ptr grid;
+    auto fill = [&](auto g, auto value) {
+        auto acc = g->getAccessor();
+        for (int z = 0; z < nz; ++z)
+            for (int y = 0; y < ny; ++y)
+                for (int x = 0; x < nx; ++x) {
+                    const float *p = v + ((size_t(z) * ny + y) * nx + x) * c;
+                    bool any = false;
+                    for (int k = 0; k < c; ++k) any |= p[k] != 0.0f;
+                    if (any)
+                        acc.setValueOn(openvdb::Coord(ijk[0] + x, ijk[1] + y, ijk[2] + z),
+                                       value(p));
+                }
+        g->setTransform(openvdb::math::Transform::createLinearTransform(voxel_size));
+        g->setName(name);
+        g->setSaveFloatAsHalf(half);
+        grid = g;
+    };
+    if (c == 1) fill(openvdb::FloatGrid::create(0.0f), [](const float *p) { return p[0]; });
+    else fill(openvdb::Vec3SGrid::create(openvdb::Vec3s(0.0f)),
+              [](const float *p) { return openvdb::Vec3s(p[0], p[1], p[2]); });
+    openvdb::io::File file(path);
+    file.setCompression(flags);
+    file.write({grid});
+    file.close();
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_openvdb_bricks, m) {
@@ -304,6 +353,8 @@ PYBIND11_MODULE(_openvdb_bricks, m) {
     m.attr("BRICK") = BRICK;
     m.attr("SIDE") = SIDE;
     m.def("info", &info, py::arg("path"), py::arg("address"));
+    m.def("write", &write_grid, py::arg("path"), py::arg("name"), py::arg("data"), py::arg("ijk"),
+          py::arg("voxel_size"), py::arg("compression"), py::arg("half") = false);
     m.def("bricks", &bricks, py::arg("path"), py::arg("address"), py::arg("i0"),
           py::arg("j0"), py::arg("k0"), py::arg("nx"), py::arg("ny"), py::arg("nz"));
 }
