@@ -300,6 +300,17 @@ def check_segment_bounds(medium, grid):
 
 
 # -- OpenVDB files written by OpenVDB itself ----------------------------------------------
+def software_dense_textures(monkeypatch) -> None:
+    """Dense storage interpolates in software for the rest of the test, as sparse bricks
+    do (CUDA's hardware interpolation has 8-bit weights: lookups then differ by up to
+    2^-9 of the maximum; elsewhere nothing changes), for tests that compare the two
+    storages' bookkeeping lookup for lookup."""
+    from mitsuba_plugins import stores
+    texture = stores.mi.Texture3f
+    monkeypatch.setattr(stores.mi, "Texture3f",
+                        lambda *a, **kw: texture(*a, **{**kw, "use_accel": False}))
+
+
 def make_vdb(path, *bodies: str, **arrays) -> dict:
     """Run ``bodies`` (code pieces, each dedented) in Debian's Python with ``vdb`` (pyopenvdb) and ``np`` imported, the
     ``arrays`` loaded by name; it appends grids to ``grids`` and may fill the dict ``out``

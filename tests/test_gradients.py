@@ -16,7 +16,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import SMOKE, camera, grid, load, make_vdb, media_scene
+from helpers import (SMOKE, camera, grid, load, make_vdb, media_scene,
+                     software_dense_textures)
 from mitsuba_plugins.tools import gradcheck
 
 TESTS = 18
@@ -178,13 +179,19 @@ def _density_grad(storage: str, data: str):
     return g.densify(grad)[..., 0], inner
 
 
-def test_sparse_bricks_gradient_equals_dense(tmp_path):
+def test_sparse_bricks_gradient_equals_dense(tmp_path, monkeypatch):
     """Sparse storage: the gradient on each voxel's owning copy equals dense storage's
     gradient of that voxel (same seed: same lookups up to float rounding) wherever every
     lookup that reads the voxel is addressed to a stored brick: on a smoke with empty
     bricks (not stored), where the difference is a lookup addressed to an empty brick (0
-    in sparse storage whatever its apron holds: docs/usage.md)."""
+    in sparse storage whatever its apron holds: docs/usage.md).
+
+    The dense texture interpolates in software here, as the bricks do: on CUDA its
+    hardware interpolation (8-bit weights) changes primal tracking decisions, and the
+    two gradients then differ by other paths, not by the bookkeeping this test checks
+    (measured on an H100: 1.7% of the voxels beyond the tolerance)."""
     from mitsuba_plugins import gridio
+    software_dense_textures(monkeypatch)
     data, _ = gridio.read_grid(SMOKE)
     data = data.copy()
     data[:, :, :16] = 0.0          # two brick columns empty: not stored

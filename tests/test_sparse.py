@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from helpers import (SMOKE, SPARSE, assert_same_expectation, assert_same_render, camera,
-                     check_segment_bounds, estimate, grid, media_scene, medium_at, render)
+                     check_segment_bounds, estimate, grid, media_scene, medium_at, render,
+                     software_dense_textures)
 from mitsuba_plugins import bricks, gridio, stores
 
 
@@ -181,10 +182,13 @@ def test_traverse_and_update(tmp_path):
     assert_same_render(a, b)
 
 
-def test_edited_bricks_keep_copies_in_step(tmp_path):
+def test_edited_bricks_keep_copies_in_step(tmp_path, monkeypatch):
     """Editing ``bricks``: apron and padding copies are re-read from each voxel's owner
-    (edits of copies ignored), lookups equal dense storage of the edited grid, the
-    majorant follows, and bad values or a changed shape are refused by name."""
+    (edits of copies ignored), lookups equal dense storage of the edited grid (a software
+    texture, helpers.software_dense_textures: on an H100 the hardware one differed by up
+    to 0.031 at values ~5), the majorant follows, and bad values or a changed shape are
+    refused by name."""
+    software_dense_textures(monkeypatch)
     rng = np.random.default_rng(1)
     data = np.zeros((20, 13, 17, 1), np.float32)
     data[3:15, 2:11, 5:17] = rng.uniform(0.0, 4.0, (12, 9, 12, 1))
