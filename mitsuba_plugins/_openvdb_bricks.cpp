@@ -5,7 +5,7 @@
 // process otherwise. The result equals the worker's (tests/test_vdb_files.py).
 //
 // info(path, address) -> dict: what the worker's info reports, without min / max; the grid
-//   read stays in memory for the bricks() call on it that follows.
+//   read stays in memory for the bricks() call on it that follows (release() frees it).
 // write(path, name, data, ijk, voxel_size, compression, half): one grid, for tests.
 // bricks(path, address, i0, j0, k0, nx, ny, nz) -> (coords, blocks)
 //   The box is index [i0, i0 + nx) x [j0, j0 + ny) x [k0, k0 + nz) (x, y, z). Values
@@ -220,6 +220,12 @@ openvdb::GridBase::Ptr read_grid(const std::string &path, const std::string &add
     return grid;
 }
 
+// Frees the grid info() kept, when no bricks() call will take it (dense storage).
+void release() {
+    kept = Kept{};
+    malloc_trim(0);
+}
+
 py::object listed(const float &v) { return py::float_(v); }
 py::object listed(const openvdb::Vec3s &v) { return py::make_tuple(v[0], v[1], v[2]); }
 
@@ -353,6 +359,7 @@ PYBIND11_MODULE(_openvdb_bricks, m) {
     m.attr("BRICK") = BRICK;
     m.attr("SIDE") = SIDE;
     m.def("info", &info, py::arg("path"), py::arg("address"));
+    m.def("release", &release);
     m.def("write", &write_grid, py::arg("path"), py::arg("name"), py::arg("data"), py::arg("ijk"),
           py::arg("voxel_size"), py::arg("compression"), py::arg("half") = false);
     m.def("bricks", &bricks, py::arg("path"), py::arg("address"), py::arg("i0"),

@@ -21,7 +21,7 @@ import contextlib
 #: shadow rays, real scattering vertices in media, real surface vertices, ray
 #: intersections (path and shadow rays), shadow rays, every tentative collision of
 #: free flights (each a density lookup), and majorant segments fetched by tracking (DDA
-#: steps, one per cell or macro cell crossed).
+#: steps, one per majorant cell crossed).
 SLOTS = ("flight_null", "shadow_tentative", "medium_vertices", "surface_vertices",
          "intersections", "shadow_rays", "flight_tentative", "segments")
 #: Terms of the volumetric estimator: emitters found by phase/BSDF sampling (MIS-weighted)

@@ -233,12 +233,7 @@ def read_vdb_header(path, grid: str):
     if reader is None:
         g = vdb_info(path, value_range=False, addresses=[entry.address])[0]
     else:      # in this process; OpenVDB's grid stays loaded for iter_vdb_bricks
-        try:
-            g = reader.info(os.fspath(path), entry.address)
-        except MemoryError:
-            _fail(path, f"out of memory reading grid {entry.address!r}")
-        except Exception as error:      # OpenVDB's IoError, ...: one line naming the file
-            _fail(path, f"reading grid {entry.address!r} failed ({error})")
+        g = _in_process(path, entry.address, reader.info, os.fspath(path), entry.address)
     grid = entry.address
     if "level" in str(g.get("class", "")).lower():
         _fail(path, f"grid {grid!r} is a level set; allowed: a fog volume (a level set is a "
@@ -286,6 +281,9 @@ def _reader(header, command: str, *args):
 def iter_vdb_slabs(header, slab_bytes: int):
     """Yield ``(z0, slab)``: float32 ``(k, Y, X, C)`` slabs of the header's box, read by
     the worker and streamed through a pipe (one slab in memory at a time)."""
+    reader = leaf_reader()
+    if reader is not None:
+        reader.release()     # the grid its info() kept: the worker reads the slabs
     z, y, x, c = header.shape
     per_slab = max(1, slab_bytes // (4 * x * y * c))
     with _reader(header, "read", per_slab) as read:
@@ -326,7 +324,7 @@ def iter_vdb_bricks(header):
     header's box (:mod:`mitsuba_plugins.bricks`). Cut by the compiled leaf-level reader
     (:func:`leaf_reader`) from OpenVDB's leaf nodes and tiles where it is built, else by
     the worker in tiles (it never holds a whole row of the box; only stored bricks cross
-    the pipe). Both give the same bricks (tests/test_vdb_files.py)."""
+    the pipe). Both give the same bricks (tests/test_vdb_reader.py)."""
     reader = leaf_reader()
     if reader is not None:
         yield from _leaf_bricks(reader, header)
@@ -344,17 +342,23 @@ def iter_vdb_bricks(header):
             yield int(row), (cols[0], cols[1]), blocks.reshape(n, SIDE, SIDE, SIDE, c)
 
 
+def _in_process(path, grid: str, call, *args):
+    """``call(*args)`` of the compiled reader on ``grid`` of ``path``; its failures (OpenVDB's
+    IoError, bad_alloc, ...) become one line naming the file."""
+    try:
+        return call(*args)
+    except MemoryError:
+        _fail(path, f"out of memory reading grid {grid!r}")
+    except Exception as error:
+        _fail(path, f"reading grid {grid!r} failed ({error})")
+
+
 def _leaf_bricks(reader, header):
     from mitsuba_plugins.bricks import BRICK
     z, y, x, c = header.shape
     i0, j0, k0 = header.index_min
-    try:
-        coords, blocks = reader.bricks(os.fspath(header.path), header.vdb_grid, i0, j0, k0,
-                                       x, y, z)
-    except MemoryError:
-        _fail(header.path, f"out of memory reading grid {header.vdb_grid!r}")
-    except Exception as error:      # OpenVDB's IoError, ...: one line naming the file
-        _fail(header.path, f"reading grid {header.vdb_grid!r} failed ({error})")
+    coords, blocks = _in_process(header.path, header.vdb_grid, reader.bricks,
+                                 os.fspath(header.path), header.vdb_grid, i0, j0, k0, x, y, z)
     if c == 1:
         blocks = blocks[..., None]
     ends = np.searchsorted(coords[:, 0], np.arange(-(-z // BRICK) + 1), side="left")
