@@ -163,6 +163,22 @@ class NullCollisionRule:
         state.tau = dr.select(redraw, -dr.log(1.0 - sampler.next_1d(redraw)), state.tau)
         return t, state, active
 
+    def pass_piece(self, tracker, ray, seg, t, state, active):
+        """Cross the rest of the current piece where nothing happens on it (no tentative
+        collision, no ring of the clock): the arithmetic of :meth:`step` on those lanes,
+        for the walk's tight loop. Returns ``(passed, t, state)``."""
+        rate = self.rate(tracker, seg)
+        seg_tau = dr.select(rate > 0, rate * (seg.t_end - t), 0.0)
+        passed = active & (state.tau >= seg_tau)
+        step = seg.t_end - t
+        if self.clock:
+            ring, _ = self.sample_clock(tracker, seg, t, step, state, passed)
+            passed &= ~ring
+        self.travel(tracker, ray, t, state, seg, step, passed)
+        t = dr.select(passed, seg.t_end, t)
+        state.tau = dr.select(passed, state.tau - seg_tau, state.tau)
+        return passed, t, state
+
     def travel(self, tracker, ray, t, state, seg, step, active) -> None:
         """Weight for travelling ``step`` from ``t`` without a tentative collision (none by
         default)."""

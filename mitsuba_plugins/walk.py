@@ -25,7 +25,12 @@ offers:
   event inside the current piece, ``[t, seg.t_end]``;
 * ``finish(t, state, t_out, entered)``: the result;
 * ``budget``: the name of the state field holding the weight that the work budget
-  scales (None: the rule's work is bounded by itself).
+  scales (None: the rule's work is bounded by itself);
+* optionally ``pass_piece(tracker, ray, seg, t, state, active) -> (passed, t, state)``:
+  cross the rest of the current piece on the lanes where nothing happens on it (the
+  null-collision rules). The walk then crosses such pieces in a tight inner loop with
+  :meth:`MajorantSegments.cross` (no density lookup in it) and calls ``step`` only for
+  an event; the random numbers drawn and the images are the same as without it.
 
 Homogeneous media never reach a walk: their flights and transmittance are analytic
 (:mod:`mitsuba_plugins.estimators`), so a scene without heterogeneous media traces no
@@ -46,9 +51,10 @@ PIECE_OPTICAL_DEPTH = 1.0
 #: Relative slack on a piece's bound for float rounding (and, on CUDA, the 8-bit
 #: fixed-point weights of hardware texture interpolation).
 PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
-#: Loop iterations one walk may take before every further one is survived only with
-#: probability WORK_SURVIVAL (Russian roulette, unbiased: the weight of a survivor is
-#: divided by it). Traced only for a medium that can have hot segments
+#: Iterations of the outer loop (events and refined pieces; the pieces crossed in the
+#: inner loop of :func:`walk` are bounded by the majorant grid's cells) one walk may take
+#: before every further one is survived only with probability WORK_SURVIVAL (Russian
+#: roulette, unbiased: the weight of a survivor is divided by it). Traced only for a medium that can have hot segments
 #: (:attr:`mitsuba_plugins.contract.Tracker.hot`): elsewhere every segment holds at most ~256 tentative
 #: collisions and a crossing visits at most Rx + Ry + Rz + 3 segments, so the work is
 #: bounded already, and the budget's counter and masked draw would cost 4-6% there
@@ -75,7 +81,21 @@ def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule, act
     while dr.hint(active, label=rule.label):
         if dr.hint(tracker.hot and rule.budget is not None, mode="scalar"):
             work, active = _work_budget(work, sampler, state, rule.budget, active)
-        active, seg = segments.next(tracker, ray, seg, t, active)
+        if dr.hint(hasattr(rule, "pass_piece"), mode="scalar"):
+            # the pieces where nothing happens, crossed in a tight loop of their own: it
+            # holds no density lookup, so a step through empty or thin cells costs a
+            # fraction of an event (pbrt-v4's SampleT_maj; docs/method.md section 8)
+            moving = mi.Bool(active)
+            while dr.hint(moving, label=rule.label + "_cross"):
+                alive, seg, stop = segments.cross(tracker, ray, seg, t, moving)
+                active &= alive | ~moving
+                moving &= alive & ~stop
+                moving, t, state = rule.pass_piece(tracker, ray, seg, t, state, moving)
+                moving &= t < t_out
+            active &= t < t_out
+            seg = segments.refine(tracker, ray, seg, t, active)
+        else:
+            active, seg = segments.next(tracker, ray, seg, t, active)
         t, state, active = rule.step(tracker, ray, sampler, seg, t, state, active)
         active &= t < t_out
 
@@ -122,6 +142,47 @@ class MajorantSegments:
     def start(self, tracker, ray: mi.Ray3f, t_in, t_out, sampler, active) -> Segment:
         return Segment(mi.Float(t_in), mi.Float(0.0), mi.Float(t_in), mi.Float(0.0),
                        mi.Float(0.0), tracker.grid.start(ray, t_in, t_out, active))
+
+    def cross(self, tracker, ray: mi.Ray3f, seg: Segment, t, active):
+        """:meth:`next` without refinement, for the tight loop of :func:`walk`: where
+        ``t`` has used up its piece, the next majorant segment becomes the piece, unless
+        it (or the rest of the current one) is hot; then the lane is told to ``stop``,
+        holding an empty piece at ``t`` that :meth:`refine` cuts as :meth:`next` would.
+        Returns ``(active, seg, stop)``."""
+        exhausted = t >= seg.t_end
+        refine = tracker.voxels is not None
+        need_cell = exhausted & (t >= seg.t_cell) if refine else exhausted
+        active = active & ~(need_cell & (seg.dda.t >= seg.dda.t_end))
+        fetch = active & need_cell
+        instrument.count("segments", fetch)
+        _, t1, maj, low, dda = tracker.grid.next_bounds(seg.dda, fetch, minorant=self.minorant)
+        t_cell = dr.select(fetch, t1, seg.t_cell)
+        sigma_cell = dr.select(fetch, maj, seg.sigma_cell)
+        sigma_min = dr.select(fetch, low, seg.sigma_min) if self.minorant else seg.sigma_min
+        if not refine:
+            return active, Segment(t_cell, sigma_cell, t_cell, sigma_cell, sigma_min, dda), \
+                mi.Bool(False)
+        new_piece = active & exhausted
+        stop = new_piece & (sigma_cell * (t_cell - t) > instrument.settings.refine_optical_depth)
+        whole = new_piece & ~stop
+        t_end = dr.select(whole, t_cell, dr.select(stop, t, seg.t_end))
+        sigma_maj = dr.select(new_piece, sigma_cell, seg.sigma_maj)
+        return active, Segment(t_end, sigma_maj, t_cell, sigma_cell, sigma_min, dda), stop
+
+    def refine(self, tracker, ray: mi.Ray3f, seg: Segment, t, active) -> Segment:
+        """After :meth:`cross`: an empty piece inside a hot segment becomes a refined
+        one (the rest of :meth:`next`)."""
+        if tracker.voxels is None:
+            return seg
+        new_piece = active & (t >= seg.t_end) & (t < seg.t_cell)
+        t_end = dr.select(new_piece, seg.t_cell, seg.t_end)
+        sigma_maj = dr.select(new_piece, seg.sigma_cell, seg.sigma_maj)
+        hot = new_piece & (seg.sigma_cell * (seg.t_cell - t) >
+                           instrument.settings.refine_optical_depth)
+        t_piece, bound = refined_piece(tracker, ray, seg.dda, t, seg.t_cell, seg.sigma_cell, hot)
+        t_end[hot] = t_piece
+        sigma_maj[hot] = bound
+        return Segment(t_end, sigma_maj, seg.t_cell, seg.sigma_cell, seg.sigma_min, seg.dda)
 
     def next(self, tracker, ray: mi.Ray3f, seg: Segment, t, active):
         """Where position ``t`` has used up its piece, take the next one: the rest of a
