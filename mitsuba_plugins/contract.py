@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import instrument
+from mitsuba_plugins import instrument, majorant
 from mitsuba_plugins.dda import MajorantGrid
 from mitsuba_plugins.spectra import probe_wavelengths
 
@@ -138,19 +138,30 @@ class GridTracker(Tracker):
 
 
 class MitsubaTracker(Tracker):
-    """Any other medium (Mitsuba's ``heterogeneous``), through Mitsuba's interface alone:
-    one segment over the whole ray with the global majorant (a 1-cell grid whose value
-    equals it inside and outside; read back once per render, and checked,
-    :func:`checked_majorant`) and ``get_scattering_coefficients``. Chromatic as it
-    declares."""
+    """Any other medium (Mitsuba's ``heterogeneous``), through Mitsuba's interface:
+    ``get_scattering_coefficients`` and, where its extinction is a gridvolume, a
+    majorant grid built from that grid's data (:func:`mitsuba_plugins.majorant.mitsuba_grid`,
+    cached while the data stay the same); else one segment over the whole ray with the
+    global majorant (a 1-cell grid whose value equals it inside and outside). The global
+    majorant is read back once per render and checked (:func:`checked_majorant`); it
+    bounds the grid outside its box. Chromatic as it declares."""
 
     def __init__(self, medium: mi.Medium, extent: float = np.inf, bbox=None):
         super().__init__(medium)
         self.is_chromatic = medium.has_spectral_extinction()
         value = checked_majorant(medium, bbox)
-        self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
-                                 mi.ScalarTransform4f(), value)
-        self.march_grid = self.grid
+        cells = majorant.mitsuba_grid(medium)
+        if cells is not None and cells[3] > 0:
+            # a gridvolume's own data: per-cell bounds, as grid_medium has (issue 29.2)
+            values, lows, grid_max, scale, to_local = cells
+            m = majorant.derive(values, lows, max(grid_max, value / scale), scale, to_local,
+                                auto=True, plugin=medium.class_name(),
+                                source="its sigma_t grid")
+            self.grid, self.march_grid = m.grid, m.march_grid
+        else:
+            self.grid = MajorantGrid(np.full((1, 1, 1), value, np.float32),
+                                     mi.ScalarTransform4f(), value)
+            self.march_grid = self.grid
         #: ``extent``: the longest stretch a ray can travel through it
         self.hot = value * extent > instrument.settings.refine_optical_depth
 

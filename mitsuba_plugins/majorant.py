@@ -22,7 +22,9 @@ only bounds.
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
+import re
 
 import drjit as dr
 import mitsuba as mi
@@ -309,3 +311,66 @@ def _check_extinction(scale: float, grid_max: float, majorant, cells, plugin, so
         f"{plugin}: extinction too large: parameter 'scale' = {scale:g} times the largest "
         f"density of {source} (times sigma_t), {grid_max:g}, gives a majorant of {top:g} "
         f"in float32; allowed: a product of at most {MAX_EXTINCTION:g} per unit length")
+
+
+# -- Mitsuba's own grid media -------------------------------------------------------------
+_MATRIX = re.compile(r"sigma_t = GridVolume\[\s*to_local = Transform\[\s*matrix=(\[\[.*?\]\])",
+                     re.S)
+#: cell bounds of Mitsuba grid media, by their data's fingerprint (see :func:`mitsuba_grid`)
+_MITSUBA_CACHE: dict = {}
+
+
+def mitsuba_grid(medium: mi.Medium):
+    """Majorants of Mitsuba's ``heterogeneous`` medium from its ``sigma_t`` gridvolume's
+    data, so that an existing scene is tracked cell by cell as ``grid_medium`` is (issue
+    29.2); None where that cannot be done exactly (no grid, or several channels outside
+    RGB variants, where the spectral upsampling of a voxel is not bounded by its largest
+    channel), and the caller keeps one global majorant.
+
+    The data and ``scale`` come from ``mi.traverse``; the grid's placement, which the
+    Python binding does not expose, from the medium's description (``to_local``). Cell
+    bounds assume clamped lookups at the box's faces; Mitsuba's ``repeat`` wrap mode
+    blends the first voxel of an axis with the last, so each axis's first and last cell
+    take the larger of their two bounds. Bounds are rebuilt only when the data's
+    fingerprint (shape, sum, maximum, scale) changes."""
+    if medium.class_name() != "HeterogeneousMedium":
+        return None
+    params = mi.traverse(medium)
+    if "sigma_t.data" not in params.keys():
+        return None
+    data, scale = params["sigma_t.data"], float(params["scale"])
+    channels = data.shape[3] if len(data.shape) == 4 else 1
+    if channels > 1 and "rgb" not in mi.variant():
+        return None
+    match = _MATRIX.search(str(medium))
+    if match is None:
+        return None
+    to_local = mi.ScalarTransform4f(np.array(ast.literal_eval(match.group(1)),
+                                             dtype=np.float64))
+    flat = data.array
+    key = (tuple(data.shape), scale, dr.sum(flat)[0], dr.max(flat)[0],
+           match.group(1))
+    if key not in _MITSUBA_CACHE:
+        values = np.asarray(data, dtype=np.float32).reshape(
+            tuple(data.shape[:3]) + (channels,))
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            return None
+        shape = values.shape
+        builder = MajorantBuilder(shape, (min(DEFAULT_RESOLUTION, shape[2]),
+                                          min(DEFAULT_RESOLUTION, shape[1]),
+                                          min(DEFAULT_RESOLUTION, shape[0]))).add_all(values)
+        cells, lows = builder.finish(), builder.finish_min()
+        for axis in range(3):               # repeat wrap mode: the edges blend
+            first = [slice(None)] * 3
+            last = [slice(None)] * 3
+            first[axis], last[axis] = slice(0, 1), slice(-1, None)
+            edge = np.maximum(cells[tuple(first)], cells[tuple(last)])
+            cells[tuple(first)] = edge
+            cells[tuple(last)] = edge
+            low = np.minimum(lows[tuple(first)], lows[tuple(last)])
+            lows[tuple(first)] = low
+            lows[tuple(last)] = low
+        if len(_MITSUBA_CACHE) >= 8:
+            _MITSUBA_CACHE.pop(next(iter(_MITSUBA_CACHE)))
+        _MITSUBA_CACHE[key] = (cells, lows, builder.max, scale, to_local)
+    return _MITSUBA_CACHE[key]

@@ -24,7 +24,7 @@ PLUGINS = {
 }
 #: shared modules whose classes bind variant types at import; re-imported first
 SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.dda",
-                   "mitsuba_plugins.contract", "mitsuba_plugins.majorant", "mitsuba_plugins.walk",
+                   "mitsuba_plugins.majorant", "mitsuba_plugins.contract", "mitsuba_plugins.walk",
                    "mitsuba_plugins.estimators", "mitsuba_plugins.scene_media",
                    "mitsuba_plugins.replay", "mitsuba_plugins.flights",
                    "mitsuba_plugins.marching", "mitsuba_plugins.paths",

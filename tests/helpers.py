@@ -292,7 +292,11 @@ def check_segment_bounds(medium, grid):
         mei.wavelengths = mi.Spectrum(*[mi.Float(rng.uniform(
             mi.MI_CIE_MIN, mi.MI_CIE_MAX, p.shape[0]).astype(np.float32)) for _ in range(4)])
     channels = dr.size_v(mi.Spectrum)
-    sigma_t = np.array(medium.eval_sigma_t(mei)).reshape(channels, -1).T.max(axis=1)
+    if hasattr(medium, "eval_sigma_t"):
+        sigma_t = medium.eval_sigma_t(mei)
+    else:                                    # a Mitsuba medium
+        _, _, sigma_t = medium.get_scattering_coefficients(mei)
+    sigma_t = np.array(sigma_t).reshape(channels, -1).T.max(axis=1)
     bound = np.repeat(sigma_maj[rows, cols], k)
     worst = np.max(sigma_t - bound)
     assert worst <= 0.0, f"sigma_t exceeds the segment majorant by {worst}"

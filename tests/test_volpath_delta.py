@@ -80,6 +80,9 @@ CASES = {
     "hg_forward": _ball(sigma_t=2.0, albedo=0.9, g=0.95),
     "smoke_grid_medium": loaded("smoke"),
     "smoke_heterogeneous": loaded("smoke_heterogeneous"),
+    # Mitsuba's heterogeneous is tracked over a majorant grid of its data (issue 29.2)
+    "chromatic_heterogeneous": loaded("chromatic_heterogeneous"),
+    "sparse_heterogeneous": loaded("sparse_heterogeneous"),
     # thin: the automatic majorant resolution is one cell (the global majorant)
     "thin_grid_one_cell": ("thin_grid", lambda: media_scene(grid(scale=0.5))),
     "chromatic_grid_medium": loaded("chromatic"),
@@ -95,7 +98,8 @@ def test_same_expectation_as_volpath(case):
 
 
 @pytest.mark.parametrize("case", ["smoke_grid_medium", "chromatic_grid_medium",
-                                  "sparse_grid_medium", "camera_inside_medium"])
+                                  "sparse_grid_medium", "camera_inside_medium",
+                                  "smoke_heterogeneous"])
 def test_decomposition_tracking_against_volpath(case):
     """free_flight = decomposition (issue 25): the same image as volpath's."""
     _against_volpath(CASES[case], f"volpath_delta-decomposition-{case}",
