@@ -151,6 +151,7 @@ class MajorantSegments:
         Returns ``(active, seg, stop)``."""
         exhausted = t >= seg.t_end
         refine = tracker.voxels is not None
+        # without refinement a piece is its whole segment (t_end == t_cell)
         need_cell = exhausted & (t >= seg.t_cell) if refine else exhausted
         active = active & ~(need_cell & (seg.dda.t >= seg.dda.t_end))
         fetch = active & need_cell
@@ -187,28 +188,9 @@ class MajorantSegments:
     def next(self, tracker, ray: mi.Ray3f, seg: Segment, t, active):
         """Where position ``t`` has used up its piece, take the next one: the rest of a
         hot segment in refined pieces, or the next majorant segment (lanes whose DDA is
-        exhausted leave). Returns ``(active, seg)``."""
-        exhausted = t >= seg.t_end
-        refine = tracker.voxels is not None
-        # without refinement a piece is its whole segment (t_end == t_cell)
-        need_cell = exhausted & (t >= seg.t_cell) if refine else exhausted
-        active = active & ~(need_cell & (seg.dda.t >= seg.dda.t_end))
-        fetch = active & need_cell
-        instrument.count("segments", fetch)
-        _, t1, maj, low, dda = tracker.grid.next_bounds(seg.dda, fetch, minorant=self.minorant)
-        t_cell = dr.select(fetch, t1, seg.t_cell)
-        sigma_cell = dr.select(fetch, maj, seg.sigma_cell)
-        sigma_min = dr.select(fetch, low, seg.sigma_min) if self.minorant else seg.sigma_min
-        if not refine:
-            return active, Segment(t_cell, sigma_cell, t_cell, sigma_cell, sigma_min, dda)
-        new_piece = active & exhausted
-        t_end = dr.select(new_piece, t_cell, seg.t_end)
-        sigma_maj = dr.select(new_piece, sigma_cell, seg.sigma_maj)
-        hot = new_piece & (sigma_cell * (t_cell - t) > instrument.settings.refine_optical_depth)
-        t_piece, bound = refined_piece(tracker, ray, dda, t, t_cell, sigma_cell, hot)
-        t_end[hot] = t_piece
-        sigma_maj[hot] = bound
-        return active, Segment(t_end, sigma_maj, t_cell, sigma_cell, sigma_min, dda)
+        exhausted leave). Returns ``(active, seg)``: :meth:`cross`, then :meth:`refine`."""
+        active, seg, _ = self.cross(tracker, ray, seg, t, active)
+        return active, self.refine(tracker, ray, seg, t, active)
 
 
 def refined_piece(tracker, ray: mi.Ray3f, dda: DDAState, t: mi.Float, t_cell: mi.Float,
