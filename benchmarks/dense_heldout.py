@@ -241,7 +241,7 @@ def main() -> None:
     ap.add_argument("--half", choices=("tuning", "test", "both"), default="both")
     ap.add_argument("--cases", default="", help="names to run (default: the half's)")
     ap.add_argument("--variants", default="volpath_delta",
-                    help=f"configurations of benchmarks/dense.py's VARIANTS")
+                    help="configurations of benchmarks/dense.py's VARIANTS")
     ap.add_argument("--list", action="store_true", help="print the family and exit")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "dense_heldout"))
     args = ap.parse_args()
