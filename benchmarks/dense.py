@@ -72,6 +72,10 @@ VARIANTS = {
                          "rr_max_survival": 0.999},
     "decomposition": {"type": "volpath_delta", "free_flight": "decomposition",   # issue 25
                       "transmittance": "residual", "rr_max_survival": 0.99},
+    # issue 29: Russian roulette between a shadow ray's pieces (0: off, before 29)
+    **{f"shadow_rr{t:g}": {"type": "volpath_delta", "transmittance": "residual",
+                            "rr_max_survival": 0.99, "shadow_roulette": t}
+       for t in (0.0, 0.1, 0.2, 0.5)},
     "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
     "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }
@@ -79,7 +83,8 @@ VARIANTS = {
 
 #: The reference's integrator: unbiased and with bounded path weights (a survival cap
 #: above albedo^2 keeps the second moment finite), so no rare firefly dominates it.
-REFERENCE = {"type": "volpath_delta", "rr_max_survival": 0.999, "transmittance": "residual"}
+REFERENCE = {"type": "volpath_delta", "rr_max_survival": 0.999, "transmittance": "residual",
+             "shadow_roulette": 0.0}
 
 
 @dataclass(frozen=True)
@@ -269,9 +274,11 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
     integ = {"builtin": mi.load_dict(BUILTIN), **{k: integrator(v) for k, v in variants.items()}}
     variant = {"builtin": None, **variants}
     per_spp = {}
-    for k, i in integ.items():                         # compile, then time one render
-        render_variant(scene, i, variant[k], spp, seed=10 ** 6)
-        per_spp[k] = render_variant(scene, i, variant[k], spp, seed=10 ** 6 + 1)[0] / spp
+    for k, i in integ.items():     # compile, then time three renders (median: one render
+        render_variant(scene, i, variant[k], spp, seed=10 ** 6)    # slowed 5x by the machine
+        per_spp[k] = statistics.median(                            # set a wrong spp, issue 29)
+            render_variant(scene, i, variant[k], spp, seed=10 ** 6 + 1 + j)[0]
+            for j in range(3)) / spp
     n = {k: max(1, int(round(spp * per_spp["builtin"] / per_spp[k]))) for k in integ}
     for k, i in integ.items():       # the sample count is a literal of every kernel: compile
         render_variant(scene, i, variant[k], n[k], seed=10 ** 6 + 2)    # at n[k] first

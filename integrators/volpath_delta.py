@@ -19,6 +19,11 @@ VARIANT = mi.variant()
 #: residual-ratio-tracked shadow rays and the roulette's survival capped at 0.99.
 DEFAULT_TRANSMITTANCE = "residual"
 DEFAULT_FREE_FLIGHT = "delta"
+#: Chosen on the tuning half of the held-out dense family (issue 29,
+#: benchmarks/results/dense_heldout_tuning.md).
+DEFAULT_SHADOW_ROULETTE = 0.2
+#: Largest threshold: below 1, so that an unattenuated ray is never played.
+MAX_SHADOW_ROULETTE = 0.999
 #: Chosen on benchmarks/results/gradients.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
 
@@ -58,6 +63,14 @@ class VolpathDelta(VolumetricIntegrator):
          tracking with roulette below 0.1), ``residual`` (residual ratio tracking, the
          majorant grid's per-cell minorant as control) or ``track_length``.
          (Default: ``residual``)
+     * - shadow_roulette
+       - |float|
+       - Russian roulette between the pieces of a shadow ray (medium to medium through
+         ``null`` surfaces), in [0, 1): where the transmittance so far ``T`` is below
+         this threshold, the ray goes on with probability ``max(T) / threshold`` and
+         weight ``1 / p``; 0 turns it off. Unbiased; in dense media it ends most shadow
+         rays at the medium's boundary instead of tracing them on to the light.
+         (Default: 0.2)
      * - gradient_estimator
        - |string|
        - How derivatives of transmittance are estimated in gradient renders
@@ -102,13 +115,15 @@ class VolpathDelta(VolumetricIntegrator):
     """
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
         self.transmittance = p.choice("transmittance", DEFAULT_TRANSMITTANCE,
                                       tuple(TRANSMITTANCE_ESTIMATORS))
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
+        self.shadow_roulette = p.float("shadow_roulette", DEFAULT_SHADOW_ROULETTE, lo=0.0,
+                                       hi=MAX_SHADOW_ROULETTE)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
@@ -118,6 +133,7 @@ class VolpathDelta(VolumetricIntegrator):
         return (f"VolpathDelta[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
                 f"  free_flight = {self.free_flight},\n"
                 f"  transmittance = {self.transmittance},\n"
+                f"  shadow_roulette = {self.shadow_roulette:g},\n"
                 f"  gradient_estimator = {self.gradient_estimator},\n"
                 f"  hide_emitters = {self.hide_emitters}\n]")
 

@@ -140,6 +140,10 @@ class RayMarchingStrategy(VolumeStrategy):
     def gathers_light(self, media: SceneMedia) -> bool:
         return self.mode == "single" or media.emission
 
+    def reach(self, ctx, medium, ray, active):
+        # single scattering draws its own point along the whole segment
+        return super().reach(ctx, medium, ray, active) if self.mode == "multi" else None
+
     def homogeneous_flight(self, ctx, medium, ray, t_max, beta, r_u, nee, active):
         if self.mode == "multi":
             return super().homogeneous_flight(ctx, medium, ray, t_max, beta, r_u, nee, active)

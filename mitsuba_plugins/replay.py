@@ -255,6 +255,10 @@ class GradientPass:
     def goes_on(self, value):
         return mi.Bool(True)
 
+    def roulette(self, value, sampler, going_on):
+        """No roulette: the primal's (in ``after``) already decided which rays count."""
+        return value
+
 
 def replay_vertex(replay: Replay, scene, media, ref, ds, shadow_medium, contribution,
                   f_attached, active_em, direction_value, after_vertex,

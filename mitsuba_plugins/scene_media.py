@@ -121,21 +121,23 @@ class SceneMedia:
 
 def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction3f,
                          ds: mi.DirectionSample3f, medium: mi.MediumPtr, sampler: mi.Sampler,
-                         estimator, active: mi.Bool) -> mi.Spectrum:
+                         estimator, active: mi.Bool, roulette: float = 0.0) -> mi.Spectrum:
     """Transmittance from ``ref`` to the emitter sample ``ds`` through media and
     index-matched (``null``) surfaces; any other surface blocks (as in Mitsuba's
-    ``volpath``, a surface passes ``eval_null_transmission``)."""
-    return shadow_pieces(scene, ref, ds, medium, TransmittancePass(media, estimator), sampler,
-                         active)
+    ``volpath``, a surface passes ``eval_null_transmission``). ``roulette``: the
+    threshold of :meth:`TransmittancePass.roulette` between pieces (0: none)."""
+    return shadow_pieces(scene, ref, ds, medium, TransmittancePass(media, estimator, roulette),
+                         sampler, active)
 
 
 class TransmittancePass:
     """What :func:`shadow_pieces` does on a shadow ray's pieces: multiply the
     transmittance estimates (``value``, from 1) and the null surfaces' transmission;
-    stops where it is 0."""
+    stops where it is 0; Russian roulette between pieces below ``threshold``
+    (:meth:`roulette`)."""
 
-    def __init__(self, media, estimator):
-        self.media, self.estimator = media, estimator
+    def __init__(self, media, estimator, threshold: float = 0.0):
+        self.media, self.estimator, self.threshold = media, estimator, threshold
 
     def initial(self):
         return mi.Spectrum(1.0)
@@ -151,6 +153,20 @@ class TransmittancePass:
 
     def goes_on(self, value):
         return dr.any(value != 0)
+
+    def roulette(self, value, sampler, going_on):
+        """Between pieces, on lanes ``going_on`` to another: where ``max(value)`` is
+        below the threshold, go on with probability ``q = max(value) / threshold``
+        and ``value / q`` (then ``max(value)`` = threshold), else 0. Unbiased; each
+        piece it ends saves an intersection and a transmittance estimate, which in
+        dense media are most of a shadow ray's cost (issue 29)."""
+        if self.threshold <= 0:
+            return value
+        v = dr.max(value)
+        play = going_on & (v > 0) & (v < self.threshold)
+        q = v / self.threshold
+        dies = sampler.next_1d(play) >= q
+        return dr.select(play, dr.select(dies, 0.0, value / q), value)
 
 
 @dr.syntax
@@ -178,5 +194,6 @@ def shadow_pieces(scene: mi.Scene, ref: mi.Interaction3f, ds: mi.DirectionSample
         medium[hit & si.is_medium_transition()] = si.target_medium(ray.d)
         remaining[hit] = remaining - si.t
         ray[hit] = si.spawn_ray(ray.d)
+        value = what.roulette(value, sampler, hit & (remaining > 0))
         active = hit & what.goes_on(value) & (remaining > 0)
     return value

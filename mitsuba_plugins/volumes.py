@@ -12,8 +12,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import Tracker, medium_interaction
-from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight
+from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
+from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight, sample_exponential
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
 from mitsuba_plugins.replay import replay_homogeneous, replay_vertex
@@ -36,11 +36,18 @@ class VolumeContext:
         self.scene, self.media, self.emitters, self.sampler = scene, media, emitters, sampler
         self.phase_ctx, self.hero, self.estimator = phase_ctx, hero, estimator
         self.replay, self.remaining = replay, None
+        self.drawn = None
 
     def at_vertex(self, remaining: mi.Spectrum) -> None:
         """Set ``remaining`` (a call, not an assignment: the path loop must not take
         this holder for loop state)."""
         self.remaining = remaining
+
+    def at_flight(self, u: mi.Float, sigma_s: mi.Spectrum, sigma_t: mi.Spectrum) -> None:
+        """Set ``drawn``: the number the next analytic flight draws its distance from
+        and the medium's coefficients, read before the ray was intersected
+        (:meth:`VolumeStrategy.reach`)."""
+        self.drawn = (u, sigma_s, sigma_t)
 
 
 class VolumeStrategy:
@@ -59,6 +66,27 @@ class VolumeStrategy:
         """Whether flights gather light (``FreeFlight.L_e``) in this scene."""
         return media.emission
 
+    def reach(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
+              active: mi.Bool):
+        """How far the path ray needs to be intersected: on lanes in a homogeneous
+        medium, the distance its analytic flight will collide at (drawn here, before
+        the intersection, from the number the flight then uses: the same estimator
+        and random numbers); ``inf`` elsewhere. In a dense medium most flights end
+        before the next surface: the intersection is then searched only up to the
+        collision and no surface interaction is computed, as in Mitsuba's ``volpath``
+        (issue 29). None: this strategy's homogeneous flights draw their own."""
+        if not ctx.media.homogeneous:
+            return None
+        mine = active & (medium != None) & medium.is_homogeneous()  # noqa: E711
+        u = ctx.sampler.next_1d(mine)
+        sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
+                                                                 mine)
+        sigma_t = mi.Spectrum(sigma_t)
+        ctx.at_flight(u, mi.Spectrum(sigma_s), sigma_t)
+        rate = index_channel(sigma_t, ctx.hero) if ctx.media.chromatic_homogeneous \
+            else sigma_t[0]
+        return dr.select(mine, sample_exponential(u, rate), dr.inf)
+
     def homogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
                            t_max: mi.Float, beta: mi.Spectrum, r_u: mi.Spectrum,
                            nee: mi.Bool, active: mi.Bool) -> FreeFlight:
@@ -73,11 +101,15 @@ class VolumeStrategy:
 def analytic_flight(ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f, t_max: mi.Float,
                     beta: mi.Spectrum, r_u: mi.Spectrum, active: mi.Bool) -> FreeFlight:
     """Analytic free flight in homogeneous media (docs/method.md section 7)."""
-    sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
-                                                             active)
+    if ctx.drawn is None:
+        sigma_s, _, sigma_t = medium.get_scattering_coefficients(
+            medium_interaction(ray, 0.0), active)
+        u = ctx.sampler.next_1d(active)
+    else:
+        u, sigma_s, sigma_t = ctx.drawn
     chromatic = ctx.media.chromatic_homogeneous
     t, scattered, weight, r_u_new = homogeneous_free_flight(
-        mi.Spectrum(sigma_t), t_max, ctx.sampler.next_1d(active), chromatic, ctx.hero, r_u)
+        mi.Spectrum(sigma_t), t_max, u, chromatic, ctx.hero, r_u)
     grad = None
     if ctx.replay is not None:
         grad = replay_homogeneous(ctx.replay, medium, ray, dr.select(scattered, t, t_max),
@@ -108,6 +140,9 @@ class VolumetricIntegrator(PathIntegrator):
     """Base of the volumetric integrators: ``self.strategy`` (set in ``configure``)
     is the medium phase; a scene without media runs the surface loop."""
     strategy: VolumeStrategy
+    #: Threshold of the Russian roulette between a shadow ray's pieces (0: none; see
+    #: :meth:`mitsuba_plugins.scene_media.TransmittancePass.roulette`).
+    shadow_roulette = 0.0
 
     def trace(self, scene, sampler, ray, medium, active):
         media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
@@ -157,7 +192,13 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
-        si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+        reach = strategy.reach(ctx, medium, ray, active)
+        if dr.hint(reach is None, mode="scalar"):
+            si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+        else:
+            si = scene.ray_intersect(mi.Ray3f(ray.o, ray.d, dr.minimum(ray.maxt, reach),
+                                              ray.time, ray.wavelengths),
+                                     mi.RayFlags.All, False, active)
         count("intersections", active)
 
         # ------------------- free flight through the medium -------------------
@@ -208,7 +249,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         shadow_medium = dr.select(on_surface & si.is_medium_transition(),
                                   si.target_medium(ds.d), medium)
         T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
-                                 ctx.estimator, active_em)
+                                 ctx.estimator, active_em, integrator.shadow_roulette)
 
         # ---------------------- BSDF or phase sampling ----------------------
         u1 = sampler.next_1d()
