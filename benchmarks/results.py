@@ -121,7 +121,7 @@ def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None,
     with ``cells``, each whole cell is one task instead (its timed rows on one worker)."""
     import mitsuba as mi
     from mitsuba_plugins import output
-    from mitsuba_plugins.tools import report
+    from mitsuba_plugins.tools import report, viewer
     todo = [(name, specs, reference) for name, specs, reference in GALLERY
             if not only or name in only]
     if cells:
@@ -140,11 +140,26 @@ def gallery(budget: float, ref_seconds: float, cache: Path, only: list | None,
     results = []
     for (name, _, _), (result, ref_spp, seconds) in zip(todo, outcomes):
         print(f"{name}: {seconds:.0f} s (reference {ref_spp} spp)", flush=True)
-        report.plot_curves(result, FIGURES / f"{name}_curves.png")
+        curves = report.plot_curves(result, FIGURES / f"{name}_curves.png")
         report.plot_panel(result, FIGURES / f"{name}_panel.png")
         output.write_json(FIGURES / f"{name}.json", result.to_dict(), indent=1)
+        viewer.write_page(result, FIGURES / f"{name}.html", report.COLUMNS, report.legend(result),
+                          curves=curves, title=f"{name} (equal time, {budget:g} s)",
+                          links={"all scenes": "index.html"})
         results.append((name, result))
+    viewer.write_index(FIGURES / "index.html", "mitsuba_plugins: the scene gallery",
+                       f"Every scene at {RES}x{RES}, equal time ({budget:g} s per integrator); "
+                       "each page flips between the reference and the integrators' images, with "
+                       "exposure, zoom, false-colour error maps, every metric and its curves.",
+                       [(name, f"{name}.html", _page_summary(result)) for name, result in results])
     return results
+
+
+def _page_summary(result) -> str:
+    """The index's line of a scene: each of ours, its efficiency against its built-in."""
+    parts = [f"{r.integrator} {fmt_ratio(r.efficiency_ratio)}x" for r in result.rows
+             if not r.builtin]
+    return "(efficiency / built-in: " + ", ".join(parts) + ")" if parts else ""
 
 
 # -- scale ------------------------------------------------------------------------------------
@@ -245,8 +260,8 @@ def fmt_ratio(x) -> str:
 def summary_table(results) -> str:
     """One line per (scene, one of ours): its efficiency and equal-time rel. MSE against
     the built-in, at equal time."""
-    lines = ["| scene | ours | built-in | efficiency / built-in | rel. MSE / built-in (equal time) | spp in the budget (ours / built-in) | NaN/Inf samples |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| scene | ours | built-in | efficiency / built-in | rel. MSE / built-in (equal time) | FLIP (ours / built-in) | spp in the budget (ours / built-in) | NaN/Inf samples |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, result in results:
         for r in result.rows:
             if r.builtin:
@@ -255,6 +270,7 @@ def summary_table(results) -> str:
                          _twin_name(r.integrator)), None)
             lines.append(f"| {name} | `{r.integrator}` | `{twin.integrator if twin else '-'}` | "
                          f"{fmt_ratio(r.efficiency_ratio)} | {fmt_ratio(r.rel_mse_ratio)} | "
+                         f"{r.flip:.4f} / {f'{twin.flip:.4f}' if twin else '-'} | "
                          f"{r.spp} / {twin.spp if twin else '-'} | "
                          f"{r.invalid + (twin.invalid if twin else 0)} |")
     return "\n".join(lines)
@@ -294,10 +310,14 @@ def write_docs(results, scale_rows, meta) -> str:
              "noise subtracted; efficiency = 1 / (rel. MSE x time). Ratios > 1 for efficiency "
              "and < 1 for rel. MSE favour ours. Media scenes are measured against a "
              "volpath_delta reference with other seeds (see each scene's legend).", "",
+             f"Each scene also has an interactive page, all listed in "
+             f"[{FIGURES.name}/index.html]({FIGURES.name}/index.html).", "",
              "## Summary", "", summary, "",
              f"![error against time, {HEADLINE}]({FIGURES.name}/{HEADLINE}_curves.png)", ""]
     for name, result in results:
-        parts += [f"## {name}", "", report.table(result, markdown=True), "",
+        parts += [f"## {name}", "", f"Interactive page (flip between images, exposure, zoom, "
+                  f"error maps; open the file in a browser): [{FIGURES.name}/{name}.html]"
+                  f"({FIGURES.name}/{name}.html)", "", report.table(result, markdown=True), "",
                   "```", report.legend(result), "```", "",
                   f"![{name} curves]({FIGURES.name}/{name}_curves.png)", "",
                   f"![{name} panel]({FIGURES.name}/{name}_panel.png)", ""]

@@ -88,6 +88,8 @@ def test_cli_equal_time(tmp_path, capsys):
     assert rc == 0
     assert "NaN/Inf samples: 0" in text and "path_rr:max_depth=3" in text
     assert (tmp_path / "out" / "panel.png").is_file()
+    page = tmp_path / "out" / "report.html"
+    assert f"report (open in a browser, works offline): {page}" in text and page.is_file()
 
 
 @pytest.mark.parametrize("args, message", [

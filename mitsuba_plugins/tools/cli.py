@@ -83,7 +83,7 @@ def cmd_compare(args) -> int:
                      reference=parse_integrator(args.reference) if args.reference else None,
                      scheduler=args.scheduler)
     out = compare_folder(args)
-    rep.write_all(result, out)
+    written = rep.write_all(result, out)
     print()
     print(rep.table(result))
     print()
@@ -91,6 +91,7 @@ def cmd_compare(args) -> int:
     invalid = sum(r.invalid for r in result.rows)
     print(f"NaN/Inf samples: {invalid} (counted in every integrator's kernel, zeroed in the images)")
     print(f"written to {out}/: table.md, table.csv, results.json, curves.png, panel.png, images")
+    print(f"report (open in a browser, works offline): {written['page']}")
     return 1 if invalid else 0
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_plugins import output
-from mitsuba_plugins.tools import stats
+from mitsuba_plugins.tools import metrics, stats
 from mitsuba_plugins.tools.scenes import load_scene, scene_digest
 
 #: Our plugin -> the Mitsuba built-in that estimates the same quantity, and the
@@ -208,12 +208,25 @@ class Row:
     efficiency: float                    # 1 / (rel. MSE x seconds)
     invalid: int                         # NaN/Inf samples (counted in the kernel)
     builtin: bool                        # a Mitsuba built-in (not one of our plugins)
+    rel_mse_trimmed: float = math.nan    # the other metrics of tools.metrics, beside rel. MSE
+    mape: float = math.nan
+    smape: float = math.nan
+    flip: float = math.nan
+    ttuv: float = math.nan               # time to unit variance: rel. MSE x seconds
     time_ratio: float = math.nan         # seconds / its built-in counterpart's seconds
     rel_mse_ratio: float = math.nan      # rel. MSE / built-in's
     efficiency_ratio: float = math.nan   # efficiency / built-in's efficiency
     curve_seconds: list = field(default_factory=list)   # cumulative time after each pass
     curve_rel_mse: list = field(default_factory=list)   # rel. MSE of the running mean (corrected)
+    curve_rel_mse_trimmed: list = field(default_factory=list)   # and its other metrics
+    curve_mape: list = field(default_factory=list)
+    curve_smape: list = field(default_factory=list)
+    curve_flip: list = field(default_factory=list)
     image: np.ndarray | None = None
+
+    def curve(self, metric: str) -> list:
+        """The running estimate's value of ``metric`` (one of ``metrics.NAMES``) after each pass."""
+        return getattr(self, "curve_" + metric)
 
     def to_dict(self) -> dict:
         out = {k: v for k, v in self.__dict__.items() if k != "image"}
@@ -258,7 +271,7 @@ class _Run:
         self.floor, self.measured = 0.0, math.nan
         self.integrator = counted(mi.load_dict(spec))   # validates parameters first
         self.total, self.passes, self.seconds, self.invalid = None, 0, 0.0, 0
-        self.curve_seconds, self.curve_rel_mse = [], []
+        self.curve_seconds, self.curves = [], {name: [] for name in metrics.NAMES}
 
     def use_reference(self, ref: stats.Estimate):
         self.ref, self.floor = ref, reference_floor(ref)
@@ -275,15 +288,20 @@ class _Run:
         self.passes += 1
         self.curve_seconds.append(self.seconds)
         self.measured = stats.rel_mse(self.total / self.passes, self.ref.mean)
-        self.curve_rel_mse.append(self.measured - self.floor)
+        for name, value in metrics.measure(self.total / self.passes, self.ref, self.floor).items():
+            self.curves[name].append(value)
 
     def row(self, spp_per_pass: int) -> Row:
-        err = self.curve_rel_mse[-1]
+        last = {name: values[-1] for name, values in self.curves.items()}
+        err = last["rel_mse"]
         return Row(label(self.spec), self.reference, self.ref.spp, self.passes * spp_per_pass,
                    self.passes, self.seconds, err, self.measured,
                    stats.efficiency(err, self.seconds),
                    self.invalid, not is_ours(self.spec["type"]),
-                   curve_seconds=list(self.curve_seconds), curve_rel_mse=list(self.curve_rel_mse),
+                   **{k: v for k, v in last.items() if k != "rel_mse"},
+                   ttuv=metrics.time_to_unit_variance(err, self.seconds),
+                   curve_seconds=list(self.curve_seconds),
+                   **{"curve_" + k: list(v) for k, v in self.curves.items()},
                    image=self.total / self.passes)
 
 

@@ -1,6 +1,7 @@
 """What :func:`mitsuba_plugins.tools.compare.compare` measured, written for people: the efficiency
-table (text, Markdown, CSV, JSON), error-against-time curves and a side-by-side image
-panel (PNG, matplotlib), and the images themselves (EXR + PNG)."""
+table (text, Markdown, CSV, JSON), error-against-time curves of every metric and a
+side-by-side image panel (PNG, matplotlib), the images themselves (EXR + PNG) and the
+interactive page ``report.html`` (:mod:`mitsuba_plugins.tools.viewer`)."""
 from __future__ import annotations
 
 import csv
@@ -11,12 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_plugins import output
-from mitsuba_plugins.tools import stats
+from mitsuba_plugins.tools import metrics, stats
 from mitsuba_plugins.tools.compare import FLOOR_SHARE, Report
 
 #: the files :func:`write_all` writes besides the images
 TABLES = ("table.md", "table.csv", "results.json")
 PLOTS = ("curves.png", "panel.png")
+PAGE = "report.html"
 
 COLUMNS = (  # header, Row attribute, format
     ("integrator", "integrator", "{}"),
@@ -28,6 +30,11 @@ COLUMNS = (  # header, Row attribute, format
     ("time / built-in", "time_ratio", "{:.3f}"),
     ("rel. MSE / built-in", "rel_mse_ratio", "{:.3f}"),
     ("eff. / built-in", "efficiency_ratio", "{:.3f}"),
+    ("rel. MSE (top 0.1% out)", "rel_mse_trimmed", "{:.3e}"),
+    ("MAPE", "mape", "{:.4f}"),
+    ("SMAPE", "smape", "{:.4f}"),
+    ("FLIP", "flip", "{:.4f}"),
+    ("time to unit var. [s]", "ttuv", "{:.3e}"),
     ("NaN/Inf samples", "invalid", "{}"),
 )
 
@@ -60,7 +67,11 @@ def legend(report: Report) -> str:
              f"rel. MSE = mean((x - ref)^2 / (ref^2 + {stats.REL_MSE_EPS})) against the reference "
              "(high spp, independent seeds) minus the reference's own rel. MSE; "
              "efficiency = 1 / (rel. MSE x time); ratios are to the built-in row with the same "
-             "reference."]
+             "reference. Beside it (not noise-corrected but the trimmed one): rel. MSE without "
+             f"the {100 * metrics.TRIM_SHARE:g}% largest pixel errors, MAPE = mean |x - ref| / "
+             f"(ref + {metrics.APE_EPS}), SMAPE = mean 2 |x - ref| / (|x| + |ref| + "
+             f"{metrics.APE_EPS}), HDR-FLIP (flip-evaluator), time to unit variance = rel. MSE "
+             "x time."]
     for name, ref in report.references.items():
         lines.append(f"reference {name}: {ref.spp} spp in {ref.passes} passes, own rel. MSE "
                      f"{floors[name]:.2e}")
@@ -81,7 +92,7 @@ def image_name(integrator_label: str) -> str:
 def output_names(labels: list[str]) -> list[str]:
     """Every file name :func:`write_all` writes for integrators of these labels."""
     images = [image_name(name) + ext for name in labels for ext in (".exr", ".png")]
-    return list(TABLES) + list(PLOTS) + images
+    return list(TABLES) + list(PLOTS) + [PAGE] + images
 
 
 def write_tables(report: Report, out: Path) -> list[Path]:
@@ -118,12 +129,6 @@ def srgb(image: np.ndarray) -> np.ndarray:
     return x[..., 0] if x.ndim == 3 and x.shape[2] == 1 else x[..., :3]
 
 
-def relative_error_map(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Per-pixel relative squared error (channel mean), the summand of the rel. MSE."""
-    err = (np.asarray(image, np.float64) - reference) ** 2 / (reference ** 2 + stats.REL_MSE_EPS)
-    return err.mean(axis=-1)
-
-
 def _pyplot():
     import matplotlib
     matplotlib.use("Agg")
@@ -138,23 +143,30 @@ def _colors(report: Report) -> dict:
 
 
 def plot_curves(report: Report, path: Path, title: str | None = None) -> Path:
-    """Relative MSE of the running estimate (reference noise subtracted) against seconds,
-    log-log; built-ins dashed, each reference's own rel. MSE dotted for scale."""
+    """Every metric of the running estimate against seconds, log-log, one panel each (the
+    first, relative MSE with the reference's noise subtracted, is the one efficiency is
+    defined on); built-ins dashed, each reference's own rel. MSE dotted for scale."""
     plt = _pyplot()
     colors = _colors(report)
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    for r in report.rows:
-        ax.loglog(r.curve_seconds, np.maximum(r.curve_rel_mse, 1e-12), "--" if r.builtin else "-", marker=".",
-                  color=colors[r.integrator], label=r.integrator + (" (built-in)" if r.builtin else ""))
-    for name, floor in report.floors().items():
-        ax.axhline(floor, color="gray", linestyle=":", linewidth=1)
-        ax.annotate(f"reference {name}'s own", (ax.get_xlim()[0], floor), fontsize=7,
-                    color="gray", va="bottom")
-    ax.set_xlabel("render time [s] (compilation excluded)")
-    ax.set_ylabel("relative MSE")
-    ax.set_title(title or f"{Path(report.scene).stem}: error against time")
-    ax.grid(True, which="both", alpha=0.25)
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(2, 3, figsize=(13.5, 7.6), dpi=100)
+    axes = axes.ravel()
+    for ax, name in zip(axes, metrics.NAMES):
+        for r in report.rows:
+            ax.loglog(r.curve_seconds, np.maximum(r.curve(name), 1e-12), "--" if r.builtin else "-",
+                      marker=".", color=colors[r.integrator],
+                      label=r.integrator + (" (built-in)" if r.builtin else ""))
+        if name == "rel_mse":
+            for ref_name, floor in report.floors().items():
+                ax.axhline(floor, color="gray", linestyle=":", linewidth=1)
+                ax.annotate(f"reference {ref_name}'s own", (ax.get_xlim()[0], floor), fontsize=7,
+                            color="gray", va="bottom")
+        ax.set_xlabel("render time [s] (compilation excluded)")
+        ax.set_ylabel(metrics.TITLES[name])
+        ax.grid(True, which="both", alpha=0.25)
+    handles, names = axes[0].get_legend_handles_labels()
+    axes[-1].axis("off")
+    axes[-1].legend(handles, names, fontsize=9, loc="center")
+    fig.suptitle(title or f"{Path(report.scene).stem}: error against time")
     fig.tight_layout()
     output.save_figure(fig, path)
     plt.close(fig)
@@ -169,8 +181,8 @@ def plot_panel(report: Report, path: Path, title: str | None = None) -> Path:
     refs = list(report.references.items())
     n = len(refs) + len(report.rows)
     fig, axes = plt.subplots(2, n, figsize=(2.3 * n + 0.8, 5.0), dpi=120, squeeze=False)
-    maps = [rel_se_map(ref) for _, ref in refs]
-    maps += [relative_error_map(r.image, report.references[r.reference].mean) for r in report.rows]
+    maps = [metrics.reference_rel_var(ref) for _, ref in refs]
+    maps += [metrics.pixel_rel_se(r.image, report.references[r.reference].mean) for r in report.rows]
     positive = np.concatenate([m[m > 0].ravel() for m in maps] + [np.array([1e-8])])
     norm = LogNorm(vmin=max(np.percentile(positive, 1), 1e-8), vmax=max(np.percentile(positive, 99.5), 1e-7))
     tops = [(f"reference\n{name} ({ref.spp} spp)", ref.mean) for name, ref in refs]
@@ -194,15 +206,15 @@ def plot_panel(report: Report, path: Path, title: str | None = None) -> Path:
     return path
 
 
-def rel_se_map(ref: stats.Estimate) -> np.ndarray:
-    """Per-pixel relative variance of a reference (channel mean): its share of a rel. MSE."""
-    return (ref.se ** 2 / (ref.mean ** 2 + stats.REL_MSE_EPS)).mean(axis=-1)
-
-
 def write_all(report: Report, out: Path) -> dict:
-    """Tables, images, ``curves.png`` and ``panel.png`` in ``out``; returns their paths."""
+    """Tables, images, ``curves.png``, ``panel.png`` and ``report.html`` in ``out``;
+    returns their paths."""
+    from mitsuba_plugins.tools import viewer
     output.check_targets([out / name for name in output_names([r.integrator for r in report.rows])])
-    return {"tables": write_tables(report, out), "images": write_images(report, out),
-            "curves": plot_curves(report, out / PLOTS[0]),
-            "panel": plot_panel(report, out / PLOTS[1])}
+    written = {"tables": write_tables(report, out), "images": write_images(report, out),
+               "curves": plot_curves(report, out / PLOTS[0]),
+               "panel": plot_panel(report, out / PLOTS[1])}
+    written["page"] = viewer.write_page(report, out / PAGE, COLUMNS, legend(report),
+                                        curves=written["curves"])
+    return written
 
