@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 import pytest
 
@@ -96,13 +97,28 @@ def _flip_cli(reference: Path, test: Path, cwd: Path) -> float:
 
 def test_flip_equals_flip_evaluators_own(compared, tmp_path):
     """Target of issue 28: the FLIP a report shows is what NVIDIA's tool computes from the
-    same two images written as EXR (the tool prints 6 decimals)."""
+    same two images written as EXR (the tool prints 6 decimals).
+
+    The tool reads only RGB files: a mono variant's images are given to it as the gray
+    value repeated in three channels, which is what ``metrics.flip`` does with them. In
+    spectral variants the images hold negative (out-of-gamut) values, read by both as
+    they are."""
     result, _, out = compared
     for row in result.rows:
-        ref_exr = output.write_exr(tmp_path / f"ref_{row.reference}.exr",
-                                   result.references[row.reference].mean)
+        ref_exr = _rgb_exr(tmp_path / f"ref_{row.reference}.exr",
+                           result.references[row.reference].mean)
         test_exr = out / f"{report.image_name(row.integrator)}.exr"
+        if row.image.shape[-1] == 1:
+            test_exr = _rgb_exr(tmp_path / test_exr.name, np.array(mi.Bitmap(str(test_exr))))
         assert abs(_flip_cli(ref_exr, test_exr, tmp_path) - row.flip) <= 1.5e-6, row.integrator
+
+
+def _rgb_exr(path: Path, image: np.ndarray) -> Path:
+    """``image`` written as an RGB EXR (a gray one repeated in three channels)."""
+    image = np.asarray(image).reshape(image.shape[0], image.shape[1], -1)
+    if image.shape[-1] == 1:
+        image = np.repeat(image, 3, axis=-1)
+    return output.write_exr(path, image)
 
 
 # -- the page ---------------------------------------------------------------------------------

@@ -82,7 +82,9 @@ def _flip_input(image: np.ndarray) -> np.ndarray:
     if x.ndim == 2:
         x = x[..., None]
     x = np.repeat(x, 3, axis=2) if x.shape[2] == 1 else x[..., :3]
-    return np.ascontiguousarray(np.maximum(x, 0.0))   # HDR-FLIP takes non-negative values
+    # As they are: negative values (spectral variants' out-of-gamut colours) too, as
+    # NVIDIA's own `flip` tool reads them from an EXR (clamping changed one by 0.7%).
+    return np.ascontiguousarray(x)
 
 
 def flip(image: np.ndarray, reference: np.ndarray) -> tuple:
