@@ -114,11 +114,9 @@ def test_flip_equals_flip_evaluators_own(compared, tmp_path):
 
 
 def _rgb_exr(path: Path, image: np.ndarray) -> Path:
-    """``image`` written as an RGB EXR (a gray one repeated in three channels)."""
-    image = np.asarray(image).reshape(image.shape[0], image.shape[1], -1)
-    if image.shape[-1] == 1:
-        image = np.repeat(image, 3, axis=-1)
-    return output.write_exr(path, image)
+    """``image`` written as an RGB EXR, as ``metrics.flip`` hands it to FLIP (a gray one
+    repeated in three channels)."""
+    return output.write_exr(path, metrics._flip_input(image))
 
 
 # -- the page ---------------------------------------------------------------------------------
