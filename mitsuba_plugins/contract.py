@@ -21,7 +21,12 @@ from mitsuba_plugins.dda import MajorantGrid
 from mitsuba_plugins.spectra import probe_wavelengths
 
 VARIANT = mi.variant()
-
+#: Fewest majorant cells along the grid's finest axis at which the walk crosses event-free
+#: pieces in its tight loop (:attr:`Tracker.tight_loop`). Chosen on kernel times at 32x32,
+#: 16 spp (benchmarks/refactor/crossing_loop.py): with the loop forced on, the 8 grids of
+#: 8 or 16 cells ran 0.88-0.99x as long as without, the 11 of 4 cells 0.95-1.02x, the 3 of
+#: one cell 1.00-1.03x.
+TIGHT_LOOP_CELLS = 8
 
 
 class TrackedMedium(Protocol):
@@ -93,6 +98,20 @@ class Tracker:
 
     def __init__(self, medium: mi.Medium):
         self.medium = medium
+
+    @property
+    def tight_loop(self) -> bool:
+        """Cross event-free pieces in the walk's tight loop
+        (:func:`mitsuba_plugins.walk.walk`)? Only where the majorant grid has at least
+        :data:`TIGHT_LOOP_CELLS` cells along an axis: it saves a density lookup per cell
+        crossed without a tentative collision, but its loop costs ~2 ms of tracing per
+        render and, on coarse grids (whose rays cross few cells), about what it saves
+        (issue 29, ``benchmarks/refactor/crossing_loop.py``). ``instrument.crossing_loop``
+        overrides."""
+        forced = instrument.settings.crossing_loop
+        if forced is not None:
+            return forced
+        return max(self.grid.resolution) >= TIGHT_LOOP_CELLS
 
     def bounds(self, ray: mi.Ray3f, t_max: mi.Float):
         """``(t_in, t_out)``: the ray's stretch inside the medium's box, clipped to

@@ -11,7 +11,9 @@ which restore them on exit (no module global of the core is rebound from outside
 * :func:`refinement`: the optical depth above which a majorant segment is *hot* and cut
   into refined pieces (:data:`REFINE_OPTICAL_DEPTH` by default; ``inf``: never, as with
   Mitsuba's one global majorant; tiny: everywhere). Read when a grid medium is loaded
-  and when a kernel is traced.
+  and when a kernel is traced;
+* :func:`crossing_loop`: force the walk's tight loop over event-free pieces on or off
+  (None: each medium's own choice, :attr:`mitsuba_plugins.contract.Tracker.tight_loop`).
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ class Settings:
         self.counters = None                      # mi.UInt32 per slot while counting
         self.terms = TERMS
         self.refine_optical_depth = REFINE_OPTICAL_DEPTH
+        self.crossing_loop = None                 # None: per medium; True / False: forced
 
 
 #: the one instance the core reads
@@ -108,3 +111,16 @@ def refinement(optical_depth: float):
         yield
     finally:
         settings.refine_optical_depth = previous
+
+
+@contextlib.contextmanager
+def crossing_loop(mode):
+    """Kernels traced inside the block cross event-free pieces in the walk's tight loop
+    (True), never (False), or as each medium chooses (None)."""
+    if mode not in (None, True, False):
+        raise ValueError(f"crossing_loop: {mode!r}; allowed: None, True, False")
+    previous, settings.crossing_loop = settings.crossing_loop, mode
+    try:
+        yield
+    finally:
+        settings.crossing_loop = previous

@@ -81,7 +81,7 @@ def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule, act
     while dr.hint(active, label=rule.label):
         if dr.hint(tracker.hot and rule.budget is not None, mode="scalar"):
             work, active = _work_budget(work, sampler, state, rule.budget, active)
-        if dr.hint(hasattr(rule, "pass_piece"), mode="scalar"):
+        if dr.hint(hasattr(rule, "pass_piece") and tracker.tight_loop, mode="scalar"):
             # the pieces where nothing happens, crossed in a tight loop of their own: it
             # holds no density lookup, so a step through empty or thin cells costs a
             # fraction of an event (pbrt-v4's SampleT_maj; docs/method.md section 8)

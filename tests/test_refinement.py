@@ -120,8 +120,9 @@ def test_refinement_is_unbiased_on_smoke(method, monkeypatch):
     assert_same_expectation(candidate, reference, f"refined_smoke_{method}")
 
 
+@pytest.mark.parametrize("tight,budget", [(True, 16), (False, 24)])
 @pytest.mark.parametrize("method", ["track_length", "ratio"])
-def test_work_budget_roulette_is_unbiased(method, monkeypatch):
+def test_work_budget_roulette_is_unbiased(method, tight, budget, monkeypatch):
     """The fallback once a tracking call exceeds its work budget (each further iteration
     survives with probability 1/2, weight 2) keeps the expectation: with a budget of 16
     iterations the (refined) smoke renders what it renders without a budget
@@ -129,14 +130,18 @@ def test_work_budget_roulette_is_unbiased(method, monkeypatch):
     over 10% of the pixels of a render with the same seed (22% / 28% measured). An
     iteration is one event since the walk crosses event-free pieces in an inner loop, so
     the budget went from 24 to 16 with it; with 24 only 0.4% of the pixels changed.
-    (Before that, a budget of 12 iterations made the weights so heavy-tailed, up to 2^k,
-    that 16 passes underestimated the per-pixel error: 8% of pixels failed while the
-    image mean stayed within z 0.5.)"""
+    Without the inner loop (the default on smoke's 4-cell grid since issue 29) the
+    budget is 24 again: at 16, event-free pieces count too and the weights grew so
+    heavy-tailed that 1.6% of the pixels failed (ratio tracking). (Before that, a budget
+    of 12 iterations made the weights so heavy-tailed, up to 2^k, that 16 passes
+    underestimated the per-pixel error: 8% of pixels failed while the image mean stayed
+    within z 0.5.)"""
+    monkeypatch.setattr(instrument.settings, "crossing_loop", tight)
     spec = {"type": "volpath_delta", "transmittance": method}
     reference = estimate(_smoke(monkeypatch, None), spec, passes=16, spp=32, seed=0)
     scene = _smoke(monkeypatch, 0.5)
     same_seed = render(scene, spec, spp=32, seed=3)
-    monkeypatch.setattr(walk, "WORK_BUDGET", 16)
+    monkeypatch.setattr(walk, "WORK_BUDGET", budget)
     candidate = estimate(scene, spec, passes=16, spp=32, seed=5000)
     changed = np.abs(render(scene, spec, spp=32, seed=3) - same_seed) > 1e-5
     assert changed[..., 0].mean() > 0.1, "the budget roulette was hardly played"
@@ -152,17 +157,36 @@ def test_the_tight_crossing_loop_changes_no_number(refine, monkeypatch):
     the one loop did, so fixed-seed images are identical with and without it (up to the
     film's atomic-add order), plain and with every smoke cell hot (refined pieces), for
     every null-collision rule: the three transmittance estimators, and decomposition
-    tracking's clock. The counts show the inner loop ran: it fetched every segment."""
-    from mitsuba_plugins import estimators
+    tracking's clock. The counts show the inner loop ran: it fetched every segment.
+    (Issue 29: by default smoke's 4-cell grid does without it; forced on here.)"""
     scene = _smoke(monkeypatch, refine)
     specs = [{"type": "volpath_delta", "transmittance": m}
              for m in ("track_length", "ratio", "residual")]
     specs.append({"type": "volpath_delta", "free_flight": "decomposition"})
-    with instrument.counting() as counts:
+    with instrument.counting() as counts, instrument.crossing_loop(True):
         tight = [render(scene, s, spp=8, seed=11) for s in specs]
     assert counts["segments"] > 0
-    monkeypatch.delattr(estimators.NullCollisionRule, "pass_piece")
-    one_loop = [render(scene, s, spp=8, seed=11) for s in specs]
+    with instrument.crossing_loop(False):
+        one_loop = [render(scene, s, spp=8, seed=11) for s in specs]
     for spec, a, b in zip(specs, tight, one_loop):
         assert np.abs(a - b).max() <= 1e-6 * max(1.0, np.abs(b).max()), spec
         assert np.abs(a).max() > 0, spec
+
+
+def test_the_tight_crossing_loop_is_chosen_per_medium():
+    """Issue 29: the walk's tight loop is traced only for majorant grids of at least
+    TIGHT_LOOP_CELLS cells along an axis (rays cross enough cells for it to pay), never
+    for a one-cell grid; ``instrument.crossing_loop`` overrides the choice."""
+    from mitsuba_plugins.contract import TIGHT_LOOP_CELLS, GridTracker
+    fine, coarse, one = (mi.load_dict(grid(majorant_resolution=n))
+                         for n in (TIGHT_LOOP_CELLS, TIGHT_LOOP_CELLS // 2, 1))
+    assert GridTracker(fine).tight_loop
+    assert not GridTracker(coarse).tight_loop
+    assert not GridTracker(one).tight_loop
+    with instrument.crossing_loop(True):
+        assert GridTracker(one).tight_loop
+    with instrument.crossing_loop(False):
+        assert not GridTracker(fine).tight_loop
+    with pytest.raises(ValueError, match="crossing_loop"):
+        with instrument.crossing_loop("yes"):
+            pass
