@@ -70,6 +70,9 @@ VARIANTS = {
                         "rr_max_survival": 0.95},
     "residual_rr0.999": {"type": "volpath_delta", "transmittance": "residual",
                          "rr_max_survival": 0.999},
+    # issue 29: caps between Mitsuba's 0.95 and the default 0.99
+    **{f"residual_rr{c:g}": {"type": "volpath_delta", "transmittance": "residual",
+                             "rr_max_survival": c} for c in (0.97, 0.98)},
     "decomposition": {"type": "volpath_delta", "free_flight": "decomposition",   # issue 25
                       "transmittance": "residual", "rr_max_survival": 0.99},
     # issue 29: Russian roulette between a shadow ray's pieces (0: off, before 29)
