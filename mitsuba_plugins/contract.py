@@ -195,7 +195,9 @@ class MitsubaTracker(Tracker):
     def albedo(self, mei: mi.MediumInteraction3f, active) -> mi.Spectrum:
         """``sigma_s / sigma_t`` (0 where the medium is empty)."""
         props = self.properties(mei, active)
-        return props.sigma_s / dr.select(props.sigma_t > 0, props.sigma_t, 1.0)
+        # mi.Spectrum: in spectral variants dr.select of a spectrum and a float is a plain
+        # Array4f, which a loop refuses as the throughput's new type
+        return mi.Spectrum(props.sigma_s / dr.select(props.sigma_t > 0, props.sigma_t, 1.0))
 
 
 def tracker_for(medium: mi.Medium, extent: float = np.inf, bbox=None) -> Tracker:

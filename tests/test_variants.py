@@ -55,9 +55,9 @@ def chromatic_cube() -> mi.Scene:
                             "rfilter": {"type": "box"}}}})
 
 
-def _against(scene, name, reference="volpath", depth=DEPTH):
+def _against(scene, name, reference="volpath", depth=DEPTH, **params):
     settings = {} if depth is None else {"max_depth": depth}
-    a = estimate(scene, {"type": name, **settings}, passes=8, spp=32, seed=1000)
+    a = estimate(scene, {"type": name, **settings, **params}, passes=8, spp=32, seed=1000)
     b = estimate(scene, {"type": reference, **settings}, passes=8, spp=64, seed=0)
     return assert_same_expectation(a, b, f"{mi.variant()}-{name}")
 
@@ -74,6 +74,14 @@ SCENES = {
 @pytest.mark.parametrize("case", list(SCENES))
 def test_media_against_volpath(other_variant, case, integrator):
     _against(SCENES[case](), integrator)
+
+
+def test_decomposition_tracking_in_a_mitsuba_medium(other_variant):
+    """Decomposition tracking's control collisions weigh by the albedo of Mitsuba's
+    ``heterogeneous`` medium; in spectral variants that albedo was a plain Array4f, which
+    the walk's loop refused as the throughput's type (found in issue 29)."""
+    _against(load("smoke_heterogeneous", res=RES), "volpath_delta",
+             free_flight="decomposition")
 
 
 @pytest.mark.parametrize("integrator,builtin,depth", [("path_rr", "path", DEPTH),
