@@ -24,9 +24,6 @@ DEFAULT_FREE_FLIGHT = "delta"
 DEFAULT_SHADOW_ROULETTE = 0.2
 #: Largest threshold: below 1, so that an unattenuated ray is never played.
 MAX_SHADOW_ROULETTE = 0.999
-#: Adjoint-driven roulette (issue 29): off unless it pays on the tuning half.
-DEFAULT_ADJOINT_RR = 0.0
-DEFAULT_ADJOINT_RESOLUTION = 16
 #: Chosen on benchmarks/results/gradients.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
 
@@ -118,8 +115,7 @@ class VolpathDelta(VolumetricIntegrator):
     """
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
-                  "adjoint_rr", "adjoint_resolution")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -128,9 +124,6 @@ class VolpathDelta(VolumetricIntegrator):
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
         self.shadow_roulette = p.float("shadow_roulette", DEFAULT_SHADOW_ROULETTE, lo=0.0,
                                        hi=MAX_SHADOW_ROULETTE)
-        self.adjoint_rr = p.float("adjoint_rr", DEFAULT_ADJOINT_RR, lo=0.0, hi=1.0)
-        self.adjoint_resolution = p.int("adjoint_resolution", DEFAULT_ADJOINT_RESOLUTION,
-                                        lo=1, hi=128)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],

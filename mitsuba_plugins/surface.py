@@ -155,18 +155,13 @@ class RussianRoulette:
             s = dr.maximum(s, self.min_survival)
         return s
 
-    def apply(self, beta, eta, depth, u, active=True, bound=None):
+    def apply(self, beta, eta, depth, u, active=True):
         """Returns ``(beta, alive)``; ``u`` is drawn by the caller on every lane
         (Mitsuba draws it whether or not roulette is active). Lanes outside
-        ``active`` play no roulette. ``bound``: a survival probability in (0, 1]
-        per lane that the survival may not exceed, at any depth (adjoint-driven
-        roulette, :mod:`mitsuba_plugins.adjoint`)."""
+        ``active`` play no roulette."""
         beta_max = dr.max(mi.unpolarized_spectrum(beta))
         s = self.survival_probability(beta_max, eta)
         rr_active = active & (depth >= self.rr_depth)
-        if bound is not None:
-            s = dr.select(rr_active, dr.minimum(s, bound), bound)
-            rr_active = active & ((depth >= self.rr_depth) | (bound < 1))
         beta[rr_active] *= dr.rcp(s)
         alive = (~rr_active | (u < s)) & (beta_max != 0)
         return beta, alive

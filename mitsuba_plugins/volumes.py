@@ -12,7 +12,6 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.adjoint import AdjointGrid, Guide, Learner, media_bounds
 from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight, sample_exponential
 from mitsuba_plugins.params import depth_limit
@@ -23,20 +22,6 @@ from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_cont
 from mitsuba_plugins.instrument import count, settings
 
 VARIANT = mi.variant()
-
-#: Share of a render's samples in the pilot pass of adjoint-driven roulette.
-PILOT_SHARE = 0.25
-#: Added to the seed of the passes after the pilot (independent random numbers).
-PILOT_SEED = 0x5BD1E995
-#: Lowest survival adjoint-driven roulette gives a path (weights grow at most 1 / it).
-ADJOINT_MIN_SURVIVAL = 0.1
-
-
-def _other_seed(seed):
-    """A seed for the passes after the pilot (a Python int or a Dr.Jit UInt32)."""
-    if isinstance(seed, int):
-        return (seed + PILOT_SEED) & 0xFFFFFFFF
-    return mi.UInt32(seed) + PILOT_SEED
 
 
 class VolumeContext:
@@ -158,36 +143,6 @@ class VolumetricIntegrator(PathIntegrator):
     #: Threshold of the Russian roulette between a shadow ray's pieces (0: none; see
     #: :meth:`mitsuba_plugins.scene_media.TransmittancePass.roulette`).
     shadow_roulette = 0.0
-    #: Adjoint-driven roulette (:mod:`mitsuba_plugins.adjoint`): ``omega`` (0: off),
-    #: the grid's resolution; ``adjoint`` is what the pass being traced uses (None,
-    #: a :class:`Learner` in the pilot, a :class:`Guide` after it).
-    adjoint_rr = 0.0
-    adjoint_resolution = 16
-    adjoint = None
-
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        """Mitsuba's render; with adjoint-driven roulette on, in two passes: the pilot
-        (:data:`PILOT_SHARE` of the samples) learns the adjoint, the rest use it, and
-        the image is their sample-weighted mean."""
-        bounds = media_bounds(scene) if self.adjoint_rr > 0 and develop else None
-        sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        spp = spp or sensor_.sampler().sample_count()
-        pilot = max(1, round(spp * PILOT_SHARE))
-        if bounds is None or spp < 2:
-            return super().render(scene, sensor_, seed, spp, develop, evaluate)
-        learner = Learner(AdjointGrid(bounds, self.adjoint_resolution))
-        try:
-            self.adjoint = learner
-            first = super().render(scene, sensor_, seed, pilot, develop, evaluate)
-            self.adjoint = learner.guide(self.adjoint_rr, ADJOINT_MIN_SURVIVAL)
-            rest = super().render(scene, sensor_, _other_seed(seed), spp - pilot, develop,
-                                  evaluate)
-        finally:
-            self.adjoint = None
-        image = (first * pilot + rest * (spp - pilot)) / spp
-        if evaluate:
-            dr.eval(image)
-        return image
 
     def trace(self, scene, sampler, ray, medium, active):
         media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
@@ -234,14 +189,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
     grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
-    adjoint = integrator.adjoint                     # adjoint-driven roulette (or None)
-    learning = isinstance(adjoint, Learner)          # ... its pilot pass
-    guided = isinstance(adjoint, Guide)
-    ring = adjoint.empty_ring() if learning else ()  # pilot: recent vertices in media
-    best = mi.Float(0.0) if guided else None         # best expected contribution so far
 
     while dr.hint(active, label="volpath_delta"):
-        L_before = mi.Spectrum(L) if learning else None
         # ------------------------------ intersect ------------------------------
         reach = strategy.reach(ctx, medium, ray, active)
         if dr.hint(reach is None, mode="scalar"):
@@ -349,21 +298,12 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         count("medium_vertices", scattered)
         count("surface_vertices", on_surface & ~null)
         count("shadow_rays", active_em)
-        bound = None
-        if dr.hint(learning, mode="scalar"):
-            ring = adjoint.deposit(ring, dr.mean(mi.unpolarized_spectrum(L - L_before)),
-                                   active)
-            ring = adjoint.push(ring, mei.p, beta, scattered)
-        if dr.hint(guided, mode="scalar"):
-            bound, best = adjoint.survival(mei.p, beta, best, scattered)
-        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real, bound)
+        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
 
         # ------------------------------ advance ------------------------------
         active = alive & (real | null) & (depth < max_depth)
         active &= ~(scattered & (phase_pdf_s <= 0))
 
-    if dr.hint(learning, mode="scalar"):
-        adjoint.finish(ring)
     if dr.hint(replay is not None, mode="scalar"):
         return dr.select(valid_ray, L, 0.0), valid_ray, dr.select(valid_ray, grad, 0.0)
     return dr.select(valid_ray, L, 0.0), valid_ray
