@@ -199,7 +199,7 @@ def markdown(result: dict) -> str:
              f"Measured {result['date']} on {result['cpu']} ({dense.VARIANT}, Mitsuba "
              f"{mi.__version__}) by `python3 benchmarks/dense_heldout.py {cfg['argv']}` (res "
              f"{cfg['res']}, volpath {cfg['spp']} spp, {cfg['runs']} alternating runs at equal "
-             f"time, median time, mean relMSE; reference {cfg['ref_spp']} spp of "
+             f"time, median time, mean relMSE; time/spp: measured time per sample over volpath's; reference {cfg['ref_spp']} spp of "
              f"{cfg['reference']}). Family and method: the script's docstring. Targets (test "
              f"half): median >= {TARGET_MEDIAN}x, none below {TARGET_MIN}x; relMSE per sample "
              "below volpath's on at least half.", ""]
@@ -218,7 +218,7 @@ def markdown(result: dict) -> str:
                 f"{'/'.join(f'{a:g}' for a in c['albedo'])} | {c['g']:g} | " + " | ".join(
                     f"**{e[v]['efficiency_ratio']:.2f}x** ({e[v]['efficiency_ratio_90'][0]:.2f}-"
                     f"{e[v]['efficiency_ratio_90'][1]:.2f}), "
-                    f"{e[v]['s_per_spp'] / e['builtin']['s_per_spp']:.2f}, "
+                    f"{dense.time_per_sample_ratio(e, v):.2f}, "
                     f"{e[v]['rel_mse_per_sample_ratio']:.2f}" for v in variants) + " |")
         lines.append("")
         for v in variants:
