@@ -354,7 +354,7 @@ def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,
     if data is not None:
         if mi.is_spectral and data.shape[3] == MODEL_CHANNELS:
             # Mitsuba's upsampled RGB: check the values it takes over the wavelengths
-            gridio.check_values(f"<{name} volume>", name, data)   # finite
+            gridio.check_values(f"<{name} volume>", name, data, -np.inf)   # finite
             s_min, s_max = model_range(data)
             data = np.stack([s_min * data[..., 3], s_max * data[..., 3]], axis=-1)
         gridio.check_values(f"<{name} volume>", name, data, lo, hi)

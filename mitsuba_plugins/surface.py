@@ -27,7 +27,7 @@ POWER_ESTIMATE_SAMPLES = 4096
 def _mean_channel(spec):
     if mi.is_rgb:
         return mi.luminance(spec)
-    return dr.mean(spec, axis=0) if dr.depth(spec) > 1 else spec
+    return dr.mean(spec, axis=0) if dr.depth_v(spec) > 1 else spec
 
 
 class EmitterSelection:

@@ -24,6 +24,7 @@ from mitsuba_plugins import scene_media
 BACKEND = VARIANT.split("_", 1)[0]
 SPECTRAL = f"{BACKEND}_ad_spectral"
 MONO = f"{BACKEND}_ad_mono"
+RGB = f"{BACKEND}_ad_rgb"
 VARIANTS = (SPECTRAL, MONO)
 RES = 16
 DEPTH = 8
@@ -88,6 +89,16 @@ def test_decomposition_tracking_in_a_mitsuba_medium(other_variant):
                                                      ("direct_mis", "direct", None)])
 def test_surfaces_against_builtin(other_variant, integrator, builtin, depth):
     _against(load("cornell_box", res=RES), integrator, reference=builtin, depth=depth)
+
+
+@pytest.mark.parametrize("integrator,builtin,depth", [("path_rr", "path", 3),
+                                                     ("direct_mis", "direct", None)])
+def test_power_emitter_selection_against_builtin(other_variant, integrator, builtin, depth):
+    """``emitter_selection = power`` reduces each emitter's sampled flux to one number:
+    luminance in RGB, the mean over the sampled wavelengths elsewhere (that branch called
+    ``dr.depth``, which Dr.Jit 1 does not have, and crashed every non-RGB render)."""
+    _against(load("veach_mis", res=RES), integrator, reference=builtin, depth=depth,
+             emitter_selection="power")
 
 
 def test_spectral_rgb_extinction_is_chromatic():
@@ -253,7 +264,7 @@ def test_a_mitsuba_majorant_below_the_extinction_is_replaced():
     assert reported < 0.9 * float(np.max(np.array(sigma_t)))       # Mitsuba's is too small
     bound = float(tracker_for(m).grid.outside[0])
     assert bound >= float(np.max(np.array(sigma_t)))
-    mi.set_variant(VARIANT)
+    mi.set_variant(RGB)
     m = medium()
     assert float(tracker_for(m).grid.outside[0]) == \
         float(np.max(np.array(m.get_majorant(probe_interaction(1)))))
