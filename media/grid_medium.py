@@ -198,7 +198,7 @@ class GridMedium(mi.Medium):
             stores.check_volume_range("grid_medium", "sigma_t", volume, 0.0, None)
             self.store = stores.VolumeStore(volume)
             self.bbox = volume.bbox()
-            self.channels = volume.channel_count()
+            self.channels = stores.volume_channels(volume)
             self.sigma_t_factor = mi.Color3f(1.0)
             self.multiplier = Multiplier(1.0)
             self._voxels = None  # a nested volume's lookups are Mitsuba's own

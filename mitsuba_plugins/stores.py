@@ -197,10 +197,14 @@ class VolumeStore:
     def bounds(self, multiplier, cells: int, path) -> Bounds:
         data, to_local = placement.volume_grid(self.volume)
         if data is None:
-            # A constant (or procedural) volume: one cell over its bounding box.
+            # A constant (or procedural) volume: one cell over its bounding box. Its
+            # minorant is a constant's smallest channel (the largest, once, let
+            # decomposition tracking's control exceed a chromatic extinction: the green
+            # of (1, 0.2, 1) rendered 10% dark), 0 for any other volume.
             top = np.float32(volume_max(self.volume))
             cell = np.full((1, 1, 1), top, np.float32)
-            return Bounds(cell, cell, float(top), placement.bbox_to_local(self.volume.bbox()))
+            low = np.full((1, 1, 1), constant_min(self.volume), np.float32)
+            return Bounds(cell, low, float(top), placement.bbox_to_local(self.volume.bbox()))
         # Mitsuba's volume holds RGB (evaluated as luminance in mono) or, in spectral
         # variants, the upsampled model (4 channels) already
         values = GridValues(3 if data.shape[3] == MODEL_CHANNELS else data.shape[3])
@@ -344,6 +348,52 @@ def volume_max(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
         probed = float(np.max(np.asarray(volume.eval(it))))
         vmax = max(vmax, probed * (1 + slack))
     return vmax
+
+
+#: random points (times the probe wavelengths) at which a volume without grid data is
+#: checked for differing channels
+CHANNEL_PROBES = 4096
+
+
+def volume_channels(volume: mi.Volume) -> int:
+    """3 where a nested volume's values can differ between channels, else 1.
+
+    ``Volume.channel_count()`` is not enough: a ``constvolume`` reports 0 in every variant
+    (an rgb constant too), and a ``gridvolume`` of RGB data 0 in spectral variants, where
+    it holds the upsampled model. Treated as gray, a chromatic extinction rendered wrong
+    silently. A grid's data say it; a volume without data is evaluated at random points
+    of its box (and at wavelengths over the visible range in spectral variants), exact
+    for a constant; a procedural volume gray at every probe counts as gray."""
+    count = volume.channel_count()
+    if count in (1, 3):
+        return count
+    data, _ = placement.volume_grid(volume, need_transform=False)
+    if data is not None:
+        return 3 if data.shape[3] in (3, MODEL_CHANNELS) else 1
+    it = dr.zeros(mi.Interaction3f, CHANNEL_PROBES)
+    if mi.is_spectral:
+        it.wavelengths = probe_wavelengths(CHANNEL_PROBES)
+    box = volume.bbox()
+    lo, hi = np.array(box.min, np.float64), np.array(box.max, np.float64)
+    lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
+    u = np.random.default_rng(0).random((3, CHANNEL_PROBES))
+    it.p = mi.Point3f(*[mi.Float((lo[k] + u[k] * (hi[k] - lo[k])).astype(np.float32))
+                        for k in range(3)])
+    values = np.atleast_2d(np.asarray(mi.unpolarized_spectrum(volume.eval(it))))
+    return 3 if np.any(values.max(axis=0) != values.min(axis=0)) else 1
+
+
+def constant_min(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
+    """A lower bound of a ``constvolume``: its smallest channel (over the visible range in
+    spectral variants, probed as :func:`volume_max` does) times ``1 - slack``; 0 for any
+    other volume, whose values are not known everywhere."""
+    if volume.class_name() != "ConstVolume":
+        return 0.0
+    it = dr.zeros(mi.Interaction3f, 256)
+    if mi.is_spectral:
+        it.wavelengths = probe_wavelengths(256)
+    values = np.asarray(mi.unpolarized_spectrum(volume.eval(it)))
+    return max(float(values.min()) * (1 - slack), 0.0)
 
 
 def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,
