@@ -376,7 +376,7 @@ class MarchedSingle(MarchRule):
         if self.emission:
             L = dr.select(active, L + T0 * (sigma_t - sigma_s) * Le * cell_integral(sigma_t, length),
                           L)
-        state.L = L
+        state.L = mi.Spectrum(L)     # spectral: the cell integral is a plain Array4f
         state.tau = dr.select(active, state.tau + sigma_t * length, state.tau)
         return dr.select(active, t1, t0), state, active & (dr.min(state.tau) < TAU_CUTOFF)
 

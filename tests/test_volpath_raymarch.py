@@ -24,7 +24,8 @@ import pytest
 from helpers import (assert_same_expectation, assert_same_render, cached_estimate, camera,
                      emissive_slab, estimate, grid, homogeneous, load, loaded, media_scene,
                      render)
-from mitsuba_plugins.tools import stats
+from mitsuba_plugins import spectra
+from mitsuba_plugins.tools import gradcheck, stats
 from mitsuba_plugins.params import PluginParameterError
 
 DEPTH = 8
@@ -46,7 +47,11 @@ def _compare(case, ours: dict, builtin: dict, name: str, spp=32, **tolerance):
     b = cached_estimate(key, make, builtin, passes=16, spp=64)
     assert_same_expectation(a, b, name, **tolerance)
     ratio = a.mean.mean() / b.mean.mean()
-    assert abs(ratio - 1) < MEAN_BOUND, f"{name}: image mean ratio {ratio:.4f}"
+    # plus 3 standard errors of the ratio: the noise of a caustic through a dielectric
+    # alone reached 1.1% in mono (one channel to average)
+    rel_se = np.hypot(*(np.sqrt((e.se ** 2).sum()) / e.mean.sum() for e in (a, b)))
+    assert abs(ratio - 1) < MEAN_BOUND + 3 * rel_se, \
+        f"{name}: image mean ratio {ratio:.4f} (relative se {rel_se:.4f})"
 
 
 #: scenes compared with references, as (reference key, scene function)
@@ -112,7 +117,11 @@ def test_chromatic_against_volpath_delta():
 @pytest.mark.parametrize("mode", ["single", "multi"])
 def test_emissive_absorbing_slab(mode, tmp_path):
     """Le (1 - exp(-sigma_t d)) through a constant chromatic grid slab of thickness 2 at
-    a step that does not divide it (t-test per channel)."""
+    a step that does not divide it (t-test per channel; mono: the luminance's extinction).
+    Spectral variants upsample the RGB extinction and the film integrates over
+    wavelengths, so the per-channel formula does not hold: there the image is compared
+    (Welch, per channel) with volpath_delta's (this once crashed there: the march's
+    emission term was a plain Array4f)."""
     path = tmp_path / "ones.npy"
     np.save(path, np.ones((4, 4, 4), np.float32))
     sigma, Le = np.array([0.5, 2.0, 4.0]), 1.5
@@ -120,7 +129,17 @@ def test_emissive_absorbing_slab(mode, tmp_path):
                           to_world=mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2))
     img = np.array(mi.render(scene, integrator=mi.load_dict(_ours(mode=mode, step_size=0.3)),
                              seed=3, spp=256))
-    for c in range(3):
+    if mi.is_spectral:
+        ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "volpath_delta"}),
+                                 seed=4, spp=256))
+        for c in range(3):
+            t, p = gradcheck.welch(img[..., c].ravel(), ref[..., c].ravel())
+            assert p > 1e-3, f"channel {c}: {img[..., c].mean():.4f} against " \
+                             f"volpath_delta {ref[..., c].mean():.4f}, t = {t:.2f}"
+        return
+    if mi.is_monochromatic:
+        sigma = spectra.luminance(sigma)
+    for c in range(img.shape[-1]):
         expected = Le * (1 - np.exp(-sigma[c] * 2.0))
         if mode == "single":  # deterministic: exact up to float rounding
             assert np.allclose(img[..., c], expected, rtol=1e-4), (c, img[..., c].mean())
