@@ -330,3 +330,12 @@ def make_vdb(path, *bodies: str, **arrays) -> dict:
     proc = subprocess.run([vdb.DEFAULT_PYTHON, "-c", script], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def spectra_of(values):
+    """``values`` as the active variant's spectra, ``[(channel values, spectrum)]``: one
+    spectrum of as many channels (repeated to 4 wavelengths in spectral variants), or
+    one per value in mono."""
+    n = dr.size_v(mi.Spectrum)
+    groups = [[v] for v in values] if n < len(values) else [np.resize(values, n)]
+    return [(list(g), mi.Spectrum(*map(float, g))) for g in groups]

@@ -21,7 +21,7 @@ import pytest
 
 from helpers import (SPARSE, assert_same_expectation, cached_estimate, camera, emissive_slab,
                      estimate, exact_optical_depth, grid, homogeneous, load, loaded,
-                     media_scene, render, segment)
+                     media_scene, render, segment, spectra_of)
 from mitsuba_plugins import contract, estimators, flights, scene_media, spectra
 from mitsuba_plugins.tools import gradcheck, stats
 
@@ -326,14 +326,6 @@ def test_residual_tracking_is_exact_in_a_constant_grid(tmp_path):
     assert np.allclose(samples, expected[:, None], rtol=1e-4)
 
 
-def _spectra(values):
-    """``values`` as the active variant's spectra: one spectrum of as many channels
-    (repeated to 4 wavelengths in spectral variants), or one per value in mono."""
-    n = dr.size_v(mi.Spectrum)
-    groups = [[v] for v in values] if n < len(values) else [np.resize(values, n)]
-    return [(g, mi.Spectrum(*map(float, g))) for g in groups]
-
-
 def _hero(sampler):
     n = dr.size_v(mi.Spectrum)
     return mi.UInt32(dr.minimum(sampler.next_1d() * n, n - 1))
@@ -342,7 +334,7 @@ def _hero(sampler):
 def test_homogeneous_free_flight_weights_are_finite_for_extreme_channels():
     """Channels 0, 1e-4 and 1e4 with the averaged pdf: finite, non-negative weights."""
     n = 4096
-    for _, sigma_t in _spectra([0.0, 1e-4, 1e4]):
+    for _, sigma_t in spectra_of([0.0, 1e-4, 1e4]):
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(0, n)
         hero = _hero(sampler)
@@ -359,7 +351,7 @@ def test_homogeneous_free_flight_is_unbiased(t_max):
     (1 - T) + T = 1 per channel (t-test over 2^20 samples), with channels 0.05/1/5
     (mono: each alone, where the estimator is exact)."""
     n = 1 << 20
-    for sigma, spectrum in _spectra([0.05, 1.0, 5.0]):
+    for sigma, spectrum in spectra_of([0.05, 1.0, 5.0]):
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(1, n)
         hero = _hero(sampler)
