@@ -164,13 +164,35 @@ def grid(filename=SMOKE, scale=8.0, albedo=0.85, to_world=None, **kw):
     return medium
 
 
+#: the wavelengths (nm) at which :func:`medium_at` evaluates in spectral variants
+PROBE_NM = (450.0, 520.0, 600.0, 680.0)
+#: Mitsuba's luminance weights (mono variants render an RGB value's luminance)
+LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+
+
 def medium_at(medium, method: str, points) -> np.ndarray:
     """``medium.<method>(mei)`` (e.g. ``eval_sigma_t``, ``get_radiance``) at world
-    ``points`` (N x 3), as a (channels, N) array."""
+    ``points`` (N x 3), as a (channels, N) array (spectral variants: at ``PROBE_NM``)."""
     points = np.asarray(points, dtype=np.float32)
     mei = dr.zeros(mi.MediumInteraction3f, len(points))
     mei.p = mi.Point3f(*(mi.Float(points[:, i]) for i in range(3)))
+    if mi.is_spectral:
+        mei.wavelengths = mi.Spectrum(*PROBE_NM)
     return np.array(getattr(medium, method)(mei))
+
+
+def emitted_in_variant(rgb) -> np.ndarray:
+    """An RGB radiance as the active variant renders it at :func:`medium_at`'s
+    wavelengths, (channels,): itself, its luminance in mono, d65 times the upsampled
+    colour in spectral variants (an emitter's rule, Mitsuba's own ``d65`` plugin)."""
+    rgb = np.asarray(rgb, np.float64)
+    if mi.is_rgb:
+        return rgb
+    if mi.is_monochromatic:
+        return np.array([LUMINANCE @ rgb])
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wavelengths = mi.Spectrum(*PROBE_NM)
+    return np.array(mi.load_dict({"type": "d65", "color": rgb.tolist()}).eval(si)).ravel()
 
 
 def segment(n):

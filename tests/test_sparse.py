@@ -8,9 +8,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import (SMOKE, SPARSE, assert_same_expectation, assert_same_render, camera,
-                     check_segment_bounds, estimate, grid, media_scene, medium_at, render,
-                     software_dense_textures)
+from helpers import (LUMINANCE, SMOKE, SPARSE, assert_same_expectation, assert_same_render,
+                     camera, check_segment_bounds, estimate, grid, media_scene, medium_at,
+                     render, software_dense_textures)
 from mitsuba_plugins import bricks, gridio, stores
 
 
@@ -105,15 +105,23 @@ def test_sparse_lookups_equal_dense(tmp_path, interpolation, channels):
                                       else dr.FilterMode.Nearest))
     local = mi.Transform4f(sparse.to_local) @ mi.Point3f(*(mi.Float(p[:, i]) for i in range(3)))
     value = np.array(exact.eval(local))
-    ref = (value if channels == 3 else np.repeat(value, 3, axis=0)) * \
-        np.array([1.0, 0.5, 0.25])[:, None]
+    factor = np.array([1.0, 0.5, 0.25])
+    ref = (value if channels == 3 else np.repeat(value, 3, axis=0)) * factor[:, None]
+    if mi.is_monochromatic:     # the luminance of the grid and of the factor
+        ref = (LUMINANCE @ value if channels == 3 else value[0]) * (LUMINANCE @ factor)
+        ref = ref[None]
+    # spectral variants: the upsampled values, checked against gridvolume's in
+    # tests/test_variants.py; here sparse against dense only
+    check_ref = not mi.is_spectral
     if interpolation == "nearest":
-        assert np.array_equal(a, b) and np.allclose(b, ref, rtol=1e-6, atol=0)
+        assert np.array_equal(a, b)
+        assert not check_ref or np.allclose(b, ref, rtol=1e-6, atol=0)
     else:
-        assert np.max(np.abs(b - ref)) <= 2e-6 * np.max(ref), np.max(np.abs(b - ref))
+        assert not check_ref or np.max(np.abs(b - ref)) <= 2e-6 * np.max(ref), \
+            np.max(np.abs(b - ref))
         hardware = mi.variant().startswith("cuda")
         assert np.max(np.abs(a - b)) <= (3 * 2.0 ** -9 if hardware else 2e-6) * np.max(a)
-    assert np.count_nonzero(a) > 1000          # the points do see the data
+    assert np.count_nonzero(np.any(a != 0, axis=0)) > 300     # the points do see the data
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
