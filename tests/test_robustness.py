@@ -53,7 +53,7 @@ def _limit_file_size():
 
 
 def test_failed_write_keeps_the_old_file(tmp_path):
-    """Under ``ulimit -f`` (20 kB) a 64x64 EXR cannot be written: the render fails, and the
+    """Under ``ulimit -f`` (20 kB) a 128x128 EXR (one channel in mono: 64 kB) cannot be written: the render fails, and the
     good ``keep.exr`` and its ``keep.png`` are left byte for byte, with no temporary file.
     In a CUDA variant OptiX's on-disk kernel cache is turned off (``OPTIX_CACHE_MAXSIZE=0``):
     under the same limit its database cannot be written and Dr.Jit aborts before rendering."""
@@ -61,7 +61,7 @@ def test_failed_write_keeps_the_old_file(tmp_path):
     old = {keep: b"good exr", keep.with_suffix(".png"): b"good png"}
     for path, data in old.items():
         path.write_bytes(data)
-    proc = run_cli("render", CORNELL, "--res", "64", "--spp", "1", "-o", keep,
+    proc = run_cli("render", CORNELL, "--res", "128", "--spp", "1", "-o", keep,
                    preexec_fn=_limit_file_size,
                    env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "OPTIX_CACHE_MAXSIZE": "0"})
     assert proc.returncode == 2, proc.stderr

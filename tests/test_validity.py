@@ -13,14 +13,15 @@ RES = 16
 
 
 class PoisonedIntegrator(mi.SamplingIntegrator):
-    """Radiance 1, except NaN (channel 0) or Inf (channel 2) for camera rays whose first
+    """Radiance 1, except NaN (channel 0) or Inf (the last) for camera rays whose first
     sample falls in chosen ranges: a known fraction of invalid samples."""
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         u = sampler.next_1d(active)
         L = mi.Spectrum(1.0)
         L[0] = dr.select(u < 0.25, dr.nan, L[0])
-        L[2] = dr.select((u >= 0.25) & (u < 0.375), dr.inf, L[2])
+        last = dr.size_v(mi.Spectrum) - 1     # 2 in RGB (mono: the NaN channel too)
+        L[last] = dr.select((u >= 0.25) & (u < 0.375), dr.inf, L[last])
         return L, mi.Bool(True), []
 
 
@@ -47,7 +48,8 @@ def test_our_integrators_count_nan_in_the_scene(name):
     scene = load("cornell_box", res=RES)
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("reflectance.value"))
-    params[key] = mi.Color3f(dr.nan, 0.5, 0.5)
+    # the stored type: Color3f in RGB, the upsampled model in spectral, Float in mono
+    params[key] = type(params[key])(dr.nan)
     params.update()
     integrator = mi.load_dict({"type": name})
     img = np.array(mi.render(scene, integrator=integrator, spp=4, seed=1))
