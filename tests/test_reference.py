@@ -23,7 +23,9 @@ INTEGRATOR = {"type": "path_rr", "max_depth": 4}
 
 
 def _read_exr(path) -> np.ndarray:
-    return np.array(mi.Bitmap(str(path)), dtype=np.float64)
+    """(H, W, C): a one-channel (mono) EXR reads back as (H, W)."""
+    image = np.array(mi.Bitmap(str(path)), dtype=np.float64)
+    return image[..., None] if image.ndim == 2 else image
 
 
 def _single_process(res, spp_per_pass, passes, seed=0) -> Estimate:
