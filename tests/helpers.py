@@ -361,3 +361,17 @@ def spectra_of(values):
     n = dr.size_v(mi.Spectrum)
     groups = [[v] for v in values] if n < len(values) else [np.resize(values, n)]
     return [(list(g), mi.Spectrum(*map(float, g))) for g in groups]
+
+
+def assert_slab_matches(scene, img: np.ndarray, reference: str, what: str) -> None:
+    """``img`` of the emissive slab ``scene`` against ``reference``'s render of it (256 spp,
+    another seed): Welch test per pixel sample, per channel, alpha 1e-3. For a spectral
+    variant's chromatic slab, whose per-channel closed form does not hold."""
+    from mitsuba_plugins.tools import gradcheck
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": reference}), seed=4,
+                             spp=256))
+    for c in range(img.shape[-1]):
+        t, p = gradcheck.welch(img[..., c].ravel(), ref[..., c].ravel())
+        assert p > 1e-3, f"{what} channel {c}: {img[..., c].mean():.4f} against " \
+                         f"{reference} {ref[..., c].mean():.4f}, t = {t:.2f}"
+
