@@ -334,6 +334,16 @@ def cell_position(p: mi.Point3f, shape) -> mi.Vector3f:
 
 
 # -- nested volumes -------------------------------------------------------------------------
+def probe_volume(volume: mi.Volume, n: int, p=None) -> np.ndarray:
+    """``volume`` evaluated on ``n`` lanes at points ``p`` (default: its box's centre),
+    at wavelengths spread over the visible range in spectral variants: (channels, n)."""
+    it = dr.zeros(mi.Interaction3f, n)
+    if mi.is_spectral:
+        it.wavelengths = probe_wavelengths(n)
+    it.p = mi.Point3f(volume.bbox().center()) if p is None else p
+    return np.atleast_2d(np.asarray(mi.unpolarized_spectrum(volume.eval(it))))
+
+
 def volume_max(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
     """A bound of a volume without grid data: Mitsuba's ``max()``, and in spectral
     variants also the largest value over the visible range (Mitsuba's ``max()`` of an
@@ -342,11 +352,7 @@ def volume_max(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
     for a range check: an albedo of 1 upsamples to at most 1.0 exactly)."""
     vmax = float(volume.max())
     if mi.is_spectral:
-        it = dr.zeros(mi.Interaction3f, 256)
-        it.wavelengths = probe_wavelengths(256)
-        it.p = mi.Point3f(volume.bbox().center())
-        probed = float(np.max(np.asarray(volume.eval(it))))
-        vmax = max(vmax, probed * (1 + slack))
+        vmax = max(vmax, float(probe_volume(volume, 256).max()) * (1 + slack))
     return vmax
 
 
@@ -370,16 +376,12 @@ def volume_channels(volume: mi.Volume) -> int:
     data, _ = placement.volume_grid(volume, need_transform=False)
     if data is not None:
         return 3 if data.shape[3] in (3, MODEL_CHANNELS) else 1
-    it = dr.zeros(mi.Interaction3f, CHANNEL_PROBES)
-    if mi.is_spectral:
-        it.wavelengths = probe_wavelengths(CHANNEL_PROBES)
     box = volume.bbox()
     lo, hi = np.array(box.min, np.float64), np.array(box.max, np.float64)
     lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
     u = np.random.default_rng(0).random((3, CHANNEL_PROBES))
-    it.p = mi.Point3f(*[mi.Float((lo[k] + u[k] * (hi[k] - lo[k])).astype(np.float32))
-                        for k in range(3)])
-    values = np.atleast_2d(np.asarray(mi.unpolarized_spectrum(volume.eval(it))))
+    values = probe_volume(volume, CHANNEL_PROBES, mi.Point3f(
+        *[mi.Float((lo[k] + u[k] * (hi[k] - lo[k])).astype(np.float32)) for k in range(3)]))
     return 3 if np.any(values.max(axis=0) != values.min(axis=0)) else 1
 
 
@@ -389,11 +391,7 @@ def constant_min(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
     other volume, whose values are not known everywhere."""
     if volume.class_name() != "ConstVolume":
         return 0.0
-    it = dr.zeros(mi.Interaction3f, 256)
-    if mi.is_spectral:
-        it.wavelengths = probe_wavelengths(256)
-    values = np.asarray(mi.unpolarized_spectrum(volume.eval(it)))
-    return max(float(values.min()) * (1 - slack), 0.0)
+    return max(float(probe_volume(volume, 256).min()) * (1 - slack), 0.0)
 
 
 def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,

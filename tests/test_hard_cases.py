@@ -257,7 +257,9 @@ def test_chromatic_ratio_1000(ours, channelwise_reference):
     assert_same_expectation(a, channelwise_reference, f"{ours}-chromatic_1000")
 
 
-@pytest.mark.skipif(not mi.is_rgb, reason="the channel-wise construction needs RGB")
+@pytest.mark.skipif(not mi.is_rgb, reason="checks volpathmis against the per-channel "
+                    "reference, which only RGB variants can build (one gray render per "
+                    "channel); spectral variants then use volpathmis as their reference")
 def test_volpathmis_agrees_with_the_channelwise_reference(channelwise_reference):
     """What makes volpathmis the spectral variants' reference above: in RGB it passes
     the same test as ours (measured: image-mean z -1.21 / -1.33 / 0.80)."""
@@ -266,7 +268,8 @@ def test_volpathmis_agrees_with_the_channelwise_reference(channelwise_reference)
     assert_same_expectation(b, channelwise_reference, "volpathmis-chromatic_1000")
 
 
-@pytest.mark.skipif(mi.is_monochromatic, reason="mono's medium is gray: volpath is right")
+@pytest.mark.skipif(mi.is_monochromatic, reason="mono renders the medium's luminance, a "
+                    "gray medium, where volpath is correct and is itself the reference")
 def test_volpath_is_wrong_on_chromatic_ratio_1000(channelwise_reference):
     """The built-in fails the same test. Measured (16 x 64 spp at 24x24, these seeds):
     40.7% of pixel channels beyond the Sidak |z| of 4.53 (max |z| 30.9), image-mean z
