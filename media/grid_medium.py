@@ -198,7 +198,6 @@ class GridMedium(mi.Medium):
             stores.check_volume_range("grid_medium", "sigma_t", volume, 0.0, None)
             self.store = stores.VolumeStore(volume)
             self.bbox = volume.bbox()
-            self.channels = stores.volume_channels(volume)
             self.sigma_t_factor = mi.Color3f(1.0)
             self.multiplier = Multiplier(1.0)
             self._voxels = None  # a nested volume's lookups are Mitsuba's own
@@ -208,11 +207,22 @@ class GridMedium(mi.Medium):
         # failed ("operands have incompatible sizes"); opaque values also reuse the kernel
         dr.make_opaque(self.scale, self.sigma_t_factor)
         self._fold_gray_factor()
-        chromatic = self.channels == 3 or len(set(floats(self.sigma_t_factor))) > 1
-        self.m_has_spectral_extinction = p.bool("has_spectral_extinction", chromatic)
+        #: the user's has_spectral_extinction, or None: derived from the extinction
+        self._spectral_extinction = p.bool("has_spectral_extinction", False) \
+            if p.has("has_spectral_extinction") else None
         self.m_is_homogeneous = False
-        self.is_chromatic = chromatic
+        self._update_chromatic()
         self._update_majorants()
+
+    def _update_chromatic(self) -> None:
+        """``is_chromatic`` (and ``has_spectral_extinction`` unless given) from the grid's
+        channels and the ``sigma_t`` factor, again after every parameter change: an edit
+        that made a gray factor chromatic once left both false (silently wrong)."""
+        if self.store.kind == "volume":
+            self.channels = stores.volume_channels(self.store.volume)
+        self.is_chromatic = self.channels == 3 or len(set(floats(self.sigma_t_factor))) > 1
+        self.m_has_spectral_extinction = self.is_chromatic \
+            if self._spectral_extinction is None else self._spectral_extinction
 
     def _load_file(self, p: Params) -> None:
         """The ``filename`` grid, placed and stored as its parameters say."""
@@ -460,6 +470,7 @@ class GridMedium(mi.Medium):
         self._fold_gray_factor()
         stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
         self.store.changed(keys)
+        self._update_chromatic()
         if self.emission_grid is not None:
             stores.synchronize(self.emission_grid[0], "emission_bricks", keys)
         if self.albedo_grid is not None:
