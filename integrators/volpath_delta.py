@@ -24,11 +24,6 @@ DEFAULT_FREE_FLIGHT = "delta"
 DEFAULT_SHADOW_ROULETTE = 0.2
 #: Largest threshold: below 1, so that an unattenuated ray is never played.
 MAX_SHADOW_ROULETTE = 0.999
-#: Probability of Dwivedi's technique at guided vertices (0: off; guiding.py).
-DEFAULT_GUIDING = 0.0
-#: Largest probability: below 1, so that the phase function's technique is always in the
-#: mixture (it bounds the weights).
-MAX_GUIDING = 0.95
 #: Chosen on benchmarks/results/gradients.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
 
@@ -76,16 +71,6 @@ class VolpathDelta(VolumetricIntegrator):
          weight ``1 / p``; 0 turns it off. Unbiased; in dense media it ends most shadow
          rays at the medium's boundary instead of tracing them on to the light.
          (Default: 0.2)
-     * - guiding
-       - |float|
-       - Dwivedi sampling of walks in homogeneous media of gray extinction, in [0, 1):
-         the probability that a vertex of a path that entered its medium through a
-         surface draws its direction from Dwivedi's density about that surface's normal
-         and its flight from the matching stretched exponential, instead of the phase
-         function and ``sigma_t`` (one-sample MIS over both, so unbiased, and the
-         weight per vertex stays below ``1 / (1 - guiding)``; docs/method.md section
-         11). 0 turns it off. Gradient renders trace the walk unguided.
-         (Default: 0)
      * - gradient_estimator
        - |string|
        - How derivatives of transmittance are estimated in gradient renders
@@ -130,8 +115,7 @@ class VolpathDelta(VolumetricIntegrator):
     """
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
-                  "guiding")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -140,7 +124,6 @@ class VolpathDelta(VolumetricIntegrator):
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
         self.shadow_roulette = p.float("shadow_roulette", DEFAULT_SHADOW_ROULETTE, lo=0.0,
                                        hi=MAX_SHADOW_ROULETTE)
-        self.guiding = p.float("guiding", DEFAULT_GUIDING, lo=0.0, hi=MAX_GUIDING)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
@@ -151,7 +134,6 @@ class VolpathDelta(VolumetricIntegrator):
                 f"  free_flight = {self.free_flight},\n"
                 f"  transmittance = {self.transmittance},\n"
                 f"  shadow_roulette = {self.shadow_roulette:g},\n"
-                f"  guiding = {self.guiding:g},\n"
                 f"  gradient_estimator = {self.gradient_estimator},\n"
                 f"  hide_emitters = {self.hide_emitters}\n]")
 

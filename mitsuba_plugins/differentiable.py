@@ -39,7 +39,7 @@ class ReplayRender:
         active = mi.Bool(active)
         if mode == dr.ADMode.Primal:
             L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
-                                     medium, media, active, guided=False)
+                                     medium, media, active)
             L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
             return L, valid, [], (L, valid)
         L_primal, valid_primal = state_in
@@ -49,7 +49,7 @@ class ReplayRender:
         replay = Replay(mode, dL, dr.select(keep, L_primal, 0.0), self.seed,
                         integrator.gradient_estimator)
         L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
-                                       medium, media, active & keep, replay, guided=False)
+                                       medium, media, active & keep, replay)
         if mode == dr.ADMode.Forward:
             return integrator.sample_guard(dr.select(keep, grad, 0.0), active), valid, [], None
         return L, valid, [], None

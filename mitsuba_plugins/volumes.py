@@ -14,7 +14,6 @@ import mitsuba as mi
 
 from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight, sample_exponential
-from mitsuba_plugins.guiding import GuideState, Guiding, eigenvalue
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.paths import PathIntegrator
 from mitsuba_plugins.replay import replay_homogeneous, replay_vertex
@@ -38,7 +37,6 @@ class VolumeContext:
         self.phase_ctx, self.hero, self.estimator = phase_ctx, hero, estimator
         self.replay, self.remaining = replay, None
         self.drawn = None
-        self.guide = None
 
     def at_vertex(self, remaining: mi.Spectrum) -> None:
         """Set ``remaining`` (a call, not an assignment: the path loop must not take
@@ -50,11 +48,6 @@ class VolumeContext:
         and the medium's coefficients, read before the ray was intersected
         (:meth:`VolumeStrategy.reach`)."""
         self.drawn = (u, sigma_s, sigma_t)
-
-    def at_guide(self, guide: GuideState) -> None:
-        """Set ``guide``: the guided walk's state for the next flight
-        (:mod:`mitsuba_plugins.guiding`), or None where the render traces no guiding."""
-        self.guide = guide
 
 
 class VolumeStrategy:
@@ -92,8 +85,6 @@ class VolumeStrategy:
         ctx.at_flight(u, mi.Spectrum(sigma_s), sigma_t)
         rate = index_channel(sigma_t, ctx.hero) if ctx.media.chromatic_homogeneous \
             else sigma_t[0]
-        if ctx.guide is not None:
-            rate = rate * ctx.guide.rate
         return dr.select(mine, sample_exponential(u, rate), dr.inf)
 
     def homogeneous_flight(self, ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f,
@@ -117,16 +108,8 @@ def analytic_flight(ctx: VolumeContext, medium: mi.MediumPtr, ray: mi.Ray3f, t_m
     else:
         u, sigma_s, sigma_t = ctx.drawn
     chromatic = ctx.media.chromatic_homogeneous
-    if ctx.guide is None:
-        t, scattered, weight, r_u_new = homogeneous_free_flight(
-            mi.Spectrum(sigma_t), t_max, u, chromatic, ctx.hero, r_u)
-    else:   # gray extinction (guiding.py): the distance drawn at the guide's rate
-        s = mi.Spectrum(sigma_t)[0]
-        t = sample_exponential(u, s * ctx.guide.rate)
-        scattered = t < t_max
-        weight = mi.Spectrum(dr.select(scattered, dr.rcp(s), 1.0) * ctx.guide.flight_factor(
-            s, dr.select(scattered, t, t_max), scattered))
-        r_u_new = r_u
+    t, scattered, weight, r_u_new = homogeneous_free_flight(
+        mi.Spectrum(sigma_t), t_max, u, chromatic, ctx.hero, r_u)
     grad = None
     if ctx.replay is not None:
         grad = replay_homogeneous(ctx.replay, medium, ray, dr.select(scattered, t, t_max),
@@ -160,9 +143,6 @@ class VolumetricIntegrator(PathIntegrator):
     #: Threshold of the Russian roulette between a shadow ray's pieces (0: none; see
     #: :meth:`mitsuba_plugins.scene_media.TransmittancePass.roulette`).
     shadow_roulette = 0.0
-    #: Probability of Dwivedi's technique at a guided vertex (0: no guiding; see
-    #: :mod:`mitsuba_plugins.guiding`).
-    guiding = 0.0
 
     def trace(self, scene, sampler, ray, medium, active):
         media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
@@ -174,8 +154,7 @@ class VolumetricIntegrator(PathIntegrator):
 
 @dr.syntax
 def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None,
-                  guided: bool = True):
+                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None):
     """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
     real collision in a medium or a surface (null surfaces included). ``integrator``
     supplies the settings (as in :func:`~mitsuba_plugins.paths.trace_surfaces`),
@@ -183,8 +162,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     ``replay`` (:class:`~mitsuba_plugins.replay.Replay`): the same path again,
     propagating derivatives (:mod:`mitsuba_plugins.replay`); returns ``(L, valid_ray,
-    tangent)``, the tangent being 0 in backward mode. ``guided``: False in both passes of a
-    gradient render (the replay does not follow a guided walk)."""
+    tangent)``, the tangent being 0 in backward mode."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -195,10 +173,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
     ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
                         strategy.shadow_estimator(media), replay)
-    guiding = None       # Dwivedi sampling (guiding.py): gray homogeneous media, primal only
-    if (integrator.guiding > 0 and guided and replay is None and media.homogeneous
-            and not media.chromatic_homogeneous):
-        guiding = Guiding(integrator.guiding)
 
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -215,12 +189,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
     grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
-    guide = GuideState.off() if guiding is not None else None   # the guided walk's state
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
-        if dr.hint(guiding is not None, mode="scalar"):
-            ctx.at_guide(guide)
         reach = strategy.reach(ctx, medium, ray, active)
         if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
@@ -241,8 +212,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         t_s = flight.t
         if dr.hint(replay is not None, mode="scalar"):
             grad += flight.grad
-        if dr.hint(guiding is not None, mode="scalar"):
-            guide = guide.consumed()
         if dr.hint(strategy.gathers_light(media), mode="scalar"):
             L += flight.L_e
             valid_ray |= dr.any(flight.L_e != 0)
@@ -289,14 +258,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                                                on_surface)
         phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, scattered)
         wo_phase, phase_weight, phase_pdf_s = phase.sample(phase_ctx, mei, u1, u2, scattered)
-        if dr.hint(guiding is not None, mode="scalar"):
-            # a guided vertex draws its direction from the mixture (guiding.py)
-            _, sigma_s_v, sigma_t_v = ctx.drawn
-            nu0 = eigenvalue(dr.mean(sigma_s_v / sigma_t_v))
-            phase_pdf = guiding.mixture_pdf(guide, nu0, phase_pdf, ds.d)
-            wo_phase, phase_weight, phase_pdf_s, guide = guiding.sample(
-                guide, phase, phase_ctx, mei, nu0, wo_phase, phase_weight, phase_pdf_s,
-                sampler.next_1d(), u2, scattered)
         f_l = dr.select(scattered, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
         p_dir = dr.select(scattered, phase_pdf, p_b)
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
@@ -326,8 +287,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         ray[on_surface] = si.spawn_ray(si.to_world(bs.wo))
         ray[scattered] = mei.spawn_ray(wo_phase)
         medium[on_surface & si.is_medium_transition()] = si.target_medium(ray.d)
-        if dr.hint(guiding is not None, mode="scalar"):
-            guide = guiding.enter(guide, on_surface, si, medium, ray.d)
         valid_ray |= real
         prev_si[real] = ref
         prev_pdf[real] = dr.select(scattered, phase_pdf_s, bs.pdf)
