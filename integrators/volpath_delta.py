@@ -71,14 +71,6 @@ class VolpathDelta(VolumetricIntegrator):
          weight ``1 / p``; 0 turns it off. Unbiased; in dense media it ends most shadow
          rays at the medium's boundary instead of tracing them on to the light.
          (Default: 0.2)
-     * - shadow_prediction
-       - |float|
-       - Russian roulette before a shadow ray leaves a homogeneous medium, in [0, 1):
-         the transmittance is predicted from the optical depth of the path's last
-         shadow ray, less ``sigma_t`` times the distance moved since (a bound where the
-         boundary is flat), and the ray is traced with probability
-         ``clamp(T_pred / shadow_roulette, shadow_prediction, 1)``, weighted by its
-         inverse. 0 turns it off. (Default: 0)
      * - gradient_estimator
        - |string|
        - How derivatives of transmittance are estimated in gradient renders
@@ -123,8 +115,7 @@ class VolpathDelta(VolumetricIntegrator):
     """
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
-                  "shadow_prediction")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -133,8 +124,6 @@ class VolpathDelta(VolumetricIntegrator):
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
         self.shadow_roulette = p.float("shadow_roulette", DEFAULT_SHADOW_ROULETTE, lo=0.0,
                                        hi=MAX_SHADOW_ROULETTE)
-        self.shadow_prediction = p.float("shadow_prediction", 0.0, lo=0.0,
-                                         hi=MAX_SHADOW_ROULETTE)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],

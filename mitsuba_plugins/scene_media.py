@@ -121,16 +121,13 @@ class SceneMedia:
 
 def shadow_transmittance(scene: mi.Scene, media: SceneMedia, ref: mi.Interaction3f,
                          ds: mi.DirectionSample3f, medium: mi.MediumPtr, sampler: mi.Sampler,
-                         estimator, active: mi.Bool, roulette: float = 0.0,
-                         first_piece: bool = False):
+                         estimator, active: mi.Bool, roulette: float = 0.0) -> mi.Spectrum:
     """Transmittance from ``ref`` to the emitter sample ``ds`` through media and
     index-matched (``null``) surfaces; any other surface blocks (as in Mitsuba's
     ``volpath``, a surface passes ``eval_null_transmission``). ``roulette``: the
-    threshold of :meth:`TransmittancePass.roulette` between pieces (0: none).
-    ``first_piece``: also return the length of the ray's first piece (up to its first
-    surface), as ``(T, length)``."""
+    threshold of :meth:`TransmittancePass.roulette` between pieces (0: none)."""
     return shadow_pieces(scene, ref, ds, medium, TransmittancePass(media, estimator, roulette),
-                         sampler, active, first_piece)
+                         sampler, active)
 
 
 class TransmittancePass:
@@ -174,27 +171,22 @@ class TransmittancePass:
 
 @dr.syntax
 def shadow_pieces(scene: mi.Scene, ref: mi.Interaction3f, ds: mi.DirectionSample3f,
-                  medium: mi.MediumPtr, what, sampler, active: mi.Bool,
-                  first_piece: bool = False):
+                  medium: mi.MediumPtr, what, sampler, active: mi.Bool):
     """The pieces of the shadow ray from ``ref`` to ``ds``, medium by medium through
     index-matched surfaces: ``what`` (:class:`TransmittancePass`, or the gradient pass of
     :mod:`mitsuba_plugins.replay`) says what happens on each, drawing from ``sampler``
-    (an argument, so that the loop carries its state); returns its value (and, if
-    ``first_piece``, the length of the first piece)."""
+    (an argument, so that the loop carries its state); returns its value."""
     # ------------------------------ loop state ------------------------------
     ray = ref.spawn_ray(ds.d)                                 # current shadow-ray piece
     remaining = ds.dist * (1.0 - mi.math.ShadowEpsilon)       # distance left to the emitter
     value = what.initial()                                    # e.g. transmittance so far
     medium = mi.MediumPtr(medium)                             # medium of the current piece
     active = mi.Bool(active)
-    first = mi.Float(dr.inf)                                  # length of the first piece
 
     while dr.hint(active, label="shadow_ray"):
         ray.maxt = remaining
         si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         count("intersections", active)
-        if dr.hint(first_piece, mode="scalar"):
-            first = dr.select(active & (first == dr.inf), dr.minimum(si.t, remaining), first)
         value = what.piece(value, medium, ray, dr.minimum(si.t, remaining), sampler, active)
         hit = active & si.is_valid()
         bsdf = si.bsdf(ray)
@@ -204,4 +196,4 @@ def shadow_pieces(scene: mi.Scene, ref: mi.Interaction3f, ds: mi.DirectionSample
         ray[hit] = si.spawn_ray(ray.d)
         value = what.roulette(value, sampler, hit & (remaining > 0))
         active = hit & what.goes_on(value) & (remaining > 0)
-    return (value, first) if first_piece else value
+    return value

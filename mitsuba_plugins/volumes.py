@@ -143,9 +143,6 @@ class VolumetricIntegrator(PathIntegrator):
     #: Threshold of the Russian roulette between a shadow ray's pieces (0: none; see
     #: :meth:`mitsuba_plugins.scene_media.TransmittancePass.roulette`).
     shadow_roulette = 0.0
-    #: Smallest survival probability of the roulette before a shadow ray from a
-    #: homogeneous medium (0: none).
-    shadow_prediction = 0.0
 
     def trace(self, scene, sampler, ray, medium, active):
         media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
@@ -177,10 +174,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
                         strategy.shadow_estimator(media), replay)
 
-    # predicted shadow rays: a roulette before each from a homogeneous medium
-    predict = (integrator.shadow_prediction > 0 and integrator.shadow_roulette > 0
-               and media.homogeneous and replay is None)
-
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
     medium = mi.MediumPtr(medium)                    # medium the ray travels in
@@ -196,8 +189,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
     grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
-    pred_tau = mi.Float(0.0) if predict else None    # optical depth of the last shadow ray
-    pred_p = mi.Point3f(0.0) if predict else None    # ... from this vertex (its first piece)
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
@@ -257,26 +248,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         wo = si.to_local(ds.d)
         shadow_medium = dr.select(on_surface & si.is_medium_transition(),
                                   si.target_medium(ds.d), medium)
-        if dr.hint(predict, mode="scalar"):
-            # roulette before the shadow ray on its predicted transmittance (issue 29)
-            sigma_min = dr.min(mi.Spectrum(ctx.drawn[2]))
-            here = active_em & scattered & medium.is_homogeneous()
-            tau = dr.maximum(pred_tau - sigma_min * dr.norm(mei.p - pred_p), 0.0)
-            q = dr.clip(dr.exp(-tau) / integrator.shadow_roulette,
-                        integrator.shadow_prediction, 1.0)
-            play = here & (q < 1.0)
-            skip = play & (sampler.next_1d(play) >= q)
-            active_em &= ~skip
-            em_weight[play & ~skip] *= dr.rcp(q)
-            T, first = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
-                                            ctx.estimator, active_em,
-                                            integrator.shadow_roulette, first_piece=True)
-            pred_tau = dr.select(here & ~skip, sigma_min * first, dr.select(here, tau, pred_tau))
-            pred_p = dr.select(here, mei.p, pred_p)
-            pred_tau[on_surface] = 0.0
-        else:
-            T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
-                                     ctx.estimator, active_em, integrator.shadow_roulette)
+        T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
+                                 ctx.estimator, active_em, integrator.shadow_roulette)
 
         # ---------------------- BSDF or phase sampling ----------------------
         u1 = sampler.next_1d()
