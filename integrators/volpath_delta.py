@@ -115,8 +115,7 @@ class VolpathDelta(VolumetricIntegrator):
     """
 
     NAME = "volpath_delta"
-    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
-                  "equiangular")
+    PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -125,7 +124,6 @@ class VolpathDelta(VolumetricIntegrator):
         self.free_flight = p.choice("free_flight", DEFAULT_FREE_FLIGHT, tuple(FREE_FLIGHTS))
         self.shadow_roulette = p.float("shadow_roulette", DEFAULT_SHADOW_ROULETTE, lo=0.0,
                                        hi=MAX_SHADOW_ROULETTE)
-        self.equiangular = p.bool("equiangular", False)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
