@@ -79,6 +79,8 @@ VARIANTS = {
     **{f"shadow_rr{t:g}": {"type": "volpath_delta", "transmittance": "residual",
                             "rr_max_survival": 0.99, "shadow_roulette": t}
        for t in (0.0, 0.1, 0.2, 0.5)},
+    # issue 29: equiangular sampling toward point and spot lights (experiment)
+    "equiangular": {"type": "volpath_delta", "equiangular": True},
     "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
     "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }

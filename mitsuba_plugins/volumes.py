@@ -12,6 +12,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins import equiangular
 from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight, sample_exponential
 from mitsuba_plugins.params import depth_limit
@@ -173,6 +174,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         hero = mi.UInt32(dr.minimum(sampler.next_1d(active) * n, n - 1))
     ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
                         strategy.shadow_estimator(media), replay)
+    eq = replay is None and equiangular.traced(integrator, scene, media)
 
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -192,7 +194,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
-        reach = strategy.reach(ctx, medium, ray, active)
+        # equiangular sampling needs the segment's end: no flight drawn before
+        reach = None if eq else strategy.reach(ctx, medium, ray, active)
         if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         else:
@@ -206,6 +209,15 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             ctx.at_vertex(replay.L_primal - L)
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
                                   depth + 1 < max_depth, active)
+        if dr.hint(eq, mode="scalar"):
+            # a second light sample along the segment (where a flight's vertex would
+            # sample one), by equiangular sampling toward a point or spot light
+            eq_lanes = active & (medium != None) & medium.is_homogeneous() \
+                & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
+            L_eq, eq_sigma_t = equiangular.gather(ctx, ray, medium, si.t, beta,
+                                                  integrator.shadow_roulette, eq_lanes)
+            L += L_eq
+            valid_ray |= dr.any(L_eq != 0)
         beta = flight.beta
         r_u = flight.r_u
         scattered = flight.scattered
@@ -250,6 +262,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                   si.target_medium(ds.d), medium)
         T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
                                  ctx.estimator, active_em, integrator.shadow_roulette)
+        if dr.hint(eq, mode="scalar"):   # the vertex's share of the two (balance heuristic)
+            T *= equiangular.free_flight_weight(ray, si.t, eq_sigma_t, t_s, ds,
+                                                eq_lanes & scattered)
 
         # ---------------------- BSDF or phase sampling ----------------------
         u1 = sampler.next_1d()

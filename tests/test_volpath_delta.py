@@ -19,9 +19,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import (SPARSE, assert_same_expectation, cached_estimate, camera, emissive_slab,
-                     estimate, exact_optical_depth, grid, homogeneous, load, loaded,
-                     media_scene, render, segment, spectra_of,
+from helpers import (SPARSE, assert_same_expectation, assert_same_render, cached_estimate,
+                     camera, emissive_slab, estimate, exact_optical_depth, grid, homogeneous,
+                     load, loaded, media_scene, render, segment, spectra_of,
                      assert_slab_matches)
 from mitsuba_plugins import contract, estimators, flights, scene_media, spectra
 from mitsuba_plugins.tools import stats
@@ -59,17 +59,17 @@ def _nested():
         })
 
 
-def _camera_inside():
+def _camera_inside(extra=None):
     fog = {"type": "ref", "id": "fog"}
     return media_scene(
         homogeneous(1.5, albedo=0.9, g=0.3),
         sensor=camera(medium=fog),
         extra={"fog": homogeneous(0.15, albedo=0.9),
                "room": {"type": "sphere", "radius": 6.0, "bsdf": {"type": "null"},
-                        "interior": fog}})
+                        "interior": fog}, **(extra or {})})
 
 
-def _cube_pair():
+def _cube_pair(extra=None):
     """A dense cube (optical depth 40 across) beside a thin one, both behind null
     boundaries, the light behind the thin one: most shadow rays leave the dense cube
     with a small transmittance and have pieces ahead, where ``shadow_roulette`` plays."""
@@ -77,7 +77,8 @@ def _cube_pair():
         return {"type": "cube", "bsdf": {"type": "null"}, "interior": medium,
                 "to_world": mi.ScalarTransform4f().translate([x, 0, 0]).scale(0.5)}
     return media_scene(extra={"dense": cube(homogeneous(40.0, albedo=0.9, g=0.5), -0.55),
-                              "thin": cube(homogeneous(0.5, albedo=0.9), 0.55)})
+                              "thin": cube(homogeneous(0.5, albedo=0.9), 0.55),
+                              **(extra or {})})
 
 
 def _ball(**kw):
@@ -207,6 +208,76 @@ def test_shadow_roulette_ends_rays_at_the_dense_medium():
         assert on[slot] == pytest.approx(off[slot], rel=0.05), slot
     # measured: 26788 -> 21776 (-19%)
     assert on["intersections"] < 0.9 * off["intersections"]
+
+
+POINT_LIGHT = {"type": "point", "position": [0.2, 0.1, 0.3],
+               "intensity": {"type": "rgb", "value": 3.0}}
+SPOT_LIGHT = {"type": "spot", "cutoff_angle": 30, "intensity": {"type": "rgb", "value": 10.0},
+              "to_world": mi.ScalarTransform4f().look_at([0.2, 0.6, 0.2], [0, -1, 0], [0, 0, 1])}
+
+
+def _lit_inside(light):
+    """The ball of fog holding a point or spot light, beside the scene's spherical light
+    and environment (emitters without a position: left to the free-flight vertex)."""
+    return lambda: media_scene(homogeneous(0.8, albedo=0.9, g=0.3), extra={"lamp": light})
+
+
+#: equiangular sampling: a light inside the medium (its purpose), the camera inside a
+#: medium, and a dense cube pair (shadow roulette) lit by a point light
+EQUIANGULAR_CASES = {
+    "point_in_fog": ("point_in_fog", _lit_inside(POINT_LIGHT)),
+    "spot_in_fog": ("spot_in_fog", _lit_inside(SPOT_LIGHT)),
+    "camera_inside": ("camera_inside_point",
+                      lambda: _camera_inside({"lamp": {**POINT_LIGHT, "position": [1.5, 0.5, 2]}})),
+    "dense_cube_pair": ("dense_cube_pair_point", lambda: _cube_pair(
+        {"lamp": {**POINT_LIGHT, "position": [0.55, 0.0, 0.0]}})),
+}
+
+
+@pytest.mark.parametrize("case", list(EQUIANGULAR_CASES))
+def test_equiangular_against_volpath(case):
+    _against_volpath(EQUIANGULAR_CASES[case], f"volpath_delta-equiangular-{case}",
+                     equiangular=True)
+
+
+def test_equiangular_lowers_variance_with_a_light_in_fog():
+    """Its purpose: with a point light inside a thin medium (the only light), the
+    per-pixel variance of the same passes falls. Measured at seeds 300 / 400 / 500:
+    0.38 / 0.44 / 0.35 of off's (0.008 at 600, where off drew a firefly); seed fixed,
+    bound 0.6. Off, the two renders would be the same estimator (ratio ~1)."""
+    scene = media_scene(homogeneous(0.8, albedo=0.9, g=0.3), extra={"lamp": POINT_LIGHT},
+                        env=0, as_dict=True)
+    del scene["light"]
+    scene = mi.load_dict(scene)
+    var = {}
+    for on in (False, True):
+        est = estimate(scene, {"type": "volpath_delta", "max_depth": DEPTH, "equiangular": on},
+                       passes=16, spp=16, seed=300)
+        var[on] = float(np.mean(est.se ** 2))
+    assert var[True] < 0.6 * var[False], var
+
+
+@pytest.mark.parametrize("what", ["no_point_light", "chromatic_extinction", "nee_off"])
+def test_equiangular_is_not_traced_where_it_does_not_apply(what):
+    """A scene without point or spot lights, one whose homogeneous medium has chromatic
+    extinction (not supported: off, with a warning; gray in mono) and ``max_depth`` 1 (no
+    light sample in media): the same render as with it off, bit for bit up to the film's
+    add order."""
+    medium, extra, depth = homogeneous(0.8, albedo=0.9), {"lamp": POINT_LIGHT}, DEPTH
+    if what == "no_point_light":
+        extra = {}
+    elif what == "chromatic_extinction":
+        medium = homogeneous([0.4, 0.8, 1.2], albedo=0.9)
+    scene = media_scene(medium, sensor=camera(res=16), extra=extra)
+    if what == "nee_off":
+        depth = 1
+    images = [render(scene, {"type": "volpath_delta", "max_depth": depth, "equiangular": on},
+                     spp=8, seed=3) for on in (False, True)]
+    if what == "chromatic_extinction" and mi.is_monochromatic:
+        # mono renders the luminance: the medium is gray, so equiangular applies there
+        assert not np.allclose(images[1], images[0])
+        return
+    assert_same_render(images[1], images[0])
 
 
 def test_harness_catches_a_2pct_bias_in_a_medium():
