@@ -86,39 +86,35 @@ def free_flight_weight(ray: mi.Ray3f, t_end: mi.Float, sigma_t: mi.Float, t: mi.
 
 
 def gather(ctx, ray: mi.Ray3f, medium: mi.MediumPtr, t_end: mi.Float, beta: mi.Spectrum,
-           roulette: float, active: mi.Bool):
+           roulette: float, eligible: mi.Bool):
     """The equiangular estimate along ``ray`` over ``[0, t_end]`` (times ``beta``, MIS
-    weighted) on the ``active`` lanes, and the medium's (gray) extinction, which
-    :func:`free_flight_weight` needs. ``roulette``: the shadow ray's threshold."""
-    active = mi.Bool(active)   # narrowed below: the caller's mask must stay whole, for
-    #                            free_flight_weight weighs the vertex on all of its lanes
-    u_light = ctx.sampler.next_2d(active)
-    u_t = ctx.sampler.next_1d(active)
-    # the extinction on every eligible lane: the vertex's weight needs it whichever
-    # emitter this lane selects here
-    mei = medium_interaction(ray, 0.0)
-    mei.medium = medium
-    sigma_s, _, sigma_t = medium.get_scattering_coefficients(mei, active)
-    sigma_t = mi.Spectrum(sigma_t)[0]
-
+    weighted) on the ``eligible`` lanes, and the medium's (gray) extinction on all of
+    them, which :func:`free_flight_weight` needs whichever emitter a lane selects here.
+    ``roulette``: the shadow ray's threshold."""
+    u_light = ctx.sampler.next_2d(eligible)
+    u_t = ctx.sampler.next_1d(eligible)
     origin = dr.zeros(mi.Interaction3f)
     origin.p, origin.time, origin.wavelengths = ray.o, ray.time, ray.wavelengths
-    light, _ = ctx.emitters.sample_direction(origin, u_light, active, test_visibility=False)
-    active &= is_point_light(light.emitter) & (light.pdf != 0)
+    light, _ = ctx.emitters.sample_direction(origin, u_light, eligible, test_visibility=False)
     seg = Segment(ray, t_end, light.p)
     t = dr.clip(seg.sample(u_t), 0.0, t_end)
     p_eq = seg.pdf(t)
-    active &= (p_eq > 0) & (t < t_end)
+    # a new mask, never the caller's narrowed in place: the vertex is weighed on every
+    # eligible lane
+    active = eligible & is_point_light(light.emitter) & (light.pdf != 0) & (p_eq > 0) \
+        & (t < t_end)
 
     mei = medium_interaction(ray, t)
     mei.medium = medium
+    sigma_s, _, sigma_t = medium.get_scattering_coefficients(mei, eligible)
+    sigma_t = mi.Spectrum(sigma_t)[0]
     ref = mi.Interaction3f(t, ray.time, ray.wavelengths, mei.p, mi.Normal3f(0.0))
     # the same numbers select the same emitter, whose position does not depend on ref
     ds, em_weight = ctx.emitters.sample_direction(ref, u_light, active, test_visibility=False)
     phase_val, _ = medium.phase_function().eval_pdf(ctx.phase_ctx, mei, ds.d, active)
     T = shadow_transmittance(ctx.scene, ctx.media, ref, ds, medium, ctx.sampler, ctx.estimator,
                              active, roulette)
-    p_ff = sigma_t * dr.exp(-sigma_t * t)
-    value = beta * mi.Spectrum(sigma_s) * (dr.exp(-sigma_t * t) * phase_val / (p_eq + p_ff)) \
-        * em_weight * T
+    attenuation = dr.exp(-sigma_t * t)
+    value = beta * mi.Spectrum(sigma_s) * (attenuation * phase_val
+                                           / (p_eq + sigma_t * attenuation)) * em_weight * T
     return dr.select(active, value, 0.0), sigma_t
