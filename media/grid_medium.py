@@ -388,7 +388,10 @@ class GridMedium(mi.Medium):
         else:
             rho = self.store.eval(mi.Transform4f(self.to_local) @ mei.p, mei.wavelengths,
                                   active)
-            if self.gray_scale is not None:
+            # the folded scalar carries the gradient of the factor's first channel
+            # only: a differentiated factor stays per channel, whatever its value
+            # (a gray factor's G-channel gradient landed on R: issue 46)
+            if self.gray_scale is not None and not dr.grad_enabled(self.sigma_t_factor):
                 sigma_t = self.gray_scale * rho
             else:
                 sigma_t = self.scale * rho * self.multiplier.spectrum(mei.wavelengths,

@@ -225,13 +225,17 @@ def replay_homogeneous(replay: Replay, medium: mi.MediumPtr, ray: mi.Ray3f, dist
     real collision (``scattered``). Returns the tangent."""
     d = dr.select(dr.isfinite(distance), distance, 0.0)    # infinite: T = 0, nothing after
 
-    def coefficients():
-        sigma_s, _, sigma_t = medium.get_scattering_coefficients(medium_interaction(ray, 0.0),
-                                                                 active)
-        return mi.Spectrum(sigma_s), mi.Spectrum(sigma_t) * d
-    sigma_s, tau = attached(coefficients)
-    return (replay.transmittance(tau, remaining, active)
-            + replay.factor(sigma_s, remaining, scattered))
+    def coefficient(index: int, factor=1.0):
+        def evaluate():
+            values = medium.get_scattering_coefficients(medium_interaction(ray, 0.0), active)
+            return mi.Spectrum(values[index]) * factor
+        return evaluate
+
+    # each attached value is evaluated just before its derivative is propagated (see
+    # replay_vertex): forward mode loses part of the tangent of a second value evaluated
+    # beside the first (sigma_s beside sigma_t: issue 46)
+    grad = replay.transmittance(attached(coefficient(2, d)), remaining, active)
+    return grad + replay.factor(attached(coefficient(0)), remaining, scattered)
 
 
 class GradientPass:

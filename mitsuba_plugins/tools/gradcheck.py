@@ -68,6 +68,34 @@ def forward_image(scene, params, direction: dict, integrator, seed: int, spp: in
     return out
 
 
+def theta_derivatives(scene, params, key: str, integrator, seed: int, spp: int) -> tuple:
+    """``(forward, backward)``: d mean(image) / d theta with ``params[key] = value +
+    theta`` at theta = 0, as Mitsuba's own AD integrator tests write it (the tangent
+    pushed through ``params.update()`` by ``dr.forward(theta)``, then
+    ``render_forward(params=theta)``; ``render_backward`` of the mean's adjoint). Both
+    passes draw the same numbers: the two agree to float rounding."""
+    original = _value(params, key)
+    out = []
+    for mode in ("forward", "backward"):
+        theta = mi.Float(0.0)
+        dr.enable_grad(theta)
+        params[key] = original + theta
+        params.update()
+        if mode == "forward":
+            dr.forward(theta, dr.ADFlag.ClearEdges)
+            img = integrator.render_forward(scene, params=theta, seed=seed, spp=spp)
+            out.append(float(np.mean(np.array(img, np.float64))))
+        else:
+            with dr.suspend_grad():      # the image's shape (channels: the variant's)
+                shape = integrator.render(scene, seed=seed, spp=1).shape
+            weights = dr.full(mi.TensorXf, 1.0 / float(np.prod(shape)), shape)
+            integrator.render_backward(scene, params, weights, seed=seed, spp=spp)
+            out.append(float(dr.grad(theta)[0]))
+        params[key] = original
+        params.update()
+    return tuple(out)
+
+
 def primal_mean(scene, params, direction: dict, step: float, integrator, seed: int,
                 spp: int, weights=None) -> float:
     """``mean(image)`` at ``theta + step * direction``."""
