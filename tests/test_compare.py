@@ -1,6 +1,7 @@
 """The comparison CLI: both modes, its outputs, the reference cache and its key."""
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -145,3 +146,38 @@ def test_ours_or_builtin_comes_from_the_registry():
     assert all(cmp.is_ours(name) for name in PLUGINS)
     assert not any(cmp.is_ours(name) for name in ("volpathmis", "ptracer", "path", "prb"))
     assert set(cmp.BUILTIN) <= set(PLUGINS)
+
+
+FIRE = str(Path(__file__).resolve().parents[1] / "scenes" / "fire.xml")
+
+
+def test_emissive_media_are_measured_against_a_reference_that_renders_them(tmp_path):
+    """Issue 46.3: on scenes/fire.xml volpath (no medium emission) was the reference:
+    volpath_delta got rel. MSE 0.366 and "eff. / built-in 0.003" without a word. The
+    reference now renders the emission, volpath's row says what it ignores, and no ratio
+    is taken to it."""
+    result = compare(FIRE, [{"type": "volpath_delta", "max_depth": 4},
+                            {"type": "volpath", "max_depth": 4}],
+                     spp=4, passes=2, ref_spp=64, res=12, cache_dir=tmp_path, progress=False)
+    ours, builtin = result.rows
+    assert ours.reference == builtin.reference == "volpath_delta:max_depth=4"
+    assert (ours.ignores, builtin.ignores) == ("", "medium emission")
+    assert math.isnan(ours.efficiency_ratio) and math.isnan(ours.rel_mse_ratio)
+    text = report.table(result) + report.legend(result)
+    assert "medium emission" in text and "WARNING: volpath:max_depth=4 ignores" in text
+
+
+def test_a_reference_that_ignores_part_of_the_scene_is_refused(tmp_path, capsys):
+    assert cli.main(["compare", FIRE, "-i", "volpath_delta", "--reference", "volpath",
+                     "--res", "8", "--cache", str(tmp_path), "-q"]) == 2
+    assert ("--reference volpath ignores the medium emission of" in capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("integrator, part", [("volpath", "medium emission"),
+                                              ("path_rr", "participating media"),
+                                              ("direct_mis", "participating media")])
+def test_render_warns_when_the_integrator_ignores_part_of_the_scene(tmp_path, capsys,
+                                                                    integrator, part):
+    assert cli.main(["render", FIRE, "-i", f"{integrator}", "--spp", "1", "--res", "4",
+                     "-o", str(tmp_path / "f.exr")]) == 0
+    assert f"warning: this integrator ignores the {part} of" in capsys.readouterr().err

@@ -51,7 +51,7 @@ def render_target(args) -> Path:
 
 def cmd_render(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import parse_integrator
+    from mitsuba_plugins.tools.compare import ignores, parse_integrator, plugin_name
     from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
@@ -59,6 +59,12 @@ def cmd_render(args) -> int:
     scene = load_scene(args.scene, args.res)
     integrator = counted(mi.load_dict(parse_integrator(args.integrator)) if args.integrator
                          else scene.integrator())
+    missing = ignores(scene, plugin_name(integrator.inner if hasattr(integrator, "inner")
+                                         else integrator))
+    if missing:
+        print(f"mitsuba-plugins: warning: this integrator ignores the {missing} of "
+              f"{args.scene}; render it with volpath_delta or volpath_raymarch",
+              file=sys.stderr, flush=True)
     print(f"rendering {args.scene} ...", file=sys.stderr, flush=True)
     seconds, array, invalid = timed_pass(scene, integrator, args.spp or 0, args.seed)
     output.write_exr(out, array)

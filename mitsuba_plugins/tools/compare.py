@@ -84,14 +84,68 @@ def _builtin_twin(integrator: dict) -> dict:
             **{k: v for k, v in integrator.items() if k in BUILTIN_PARAMS.get(builtin, ())}}
 
 
-def reference_for(integrator: dict) -> dict:
-    """The built-in integrator (with the parameters it shares) that serves as reference."""
+#: integrators that render participating media but not a medium's own emission
+#: (Mitsuba's ``volpath`` family calls no ``get_radiance``)
+NO_MEDIUM_EMISSION = ("volpath", "volpathmis", "prbvolpath")
+#: integrators that render surfaces only: a medium's boundary is passed through
+SURFACES_ONLY = ("path", "direct", "prb", "direct_projective", "prb_basic", "path_rr",
+                 "direct_mis")
+#: what renders every part of a scene that the integrators above can leave out
+CAPABLE = "volpath_delta"
+
+
+def ignores(scene, integrator_type: str) -> str:
+    """The part of ``scene`` that an integrator of ``integrator_type`` does not render
+    (``""``: none): participating media (surface integrators), or a medium's emission
+    (``emission``, ``emission_grid``, ``temperature_grid``: Mitsuba's volumetric
+    built-ins)."""
+    from mitsuba_plugins.scene_media import scene_media
+    media = scene_media(scene)
+    if integrator_type in SURFACES_ONLY and media:
+        return "participating media"
+    if integrator_type in NO_MEDIUM_EMISSION and \
+            any(getattr(m, "has_emission", False) for m in media):
+        return "medium emission"
+    return ""
+
+
+#: a loaded integrator's plugin name, by the class Mitsuba reports for it
+_CLASS_NAMES = {"VolumetricPathIntegrator": "volpath", "VolpathMisIntegratorImpl": "volpathmis",
+                "PathIntegrator": "path", "DirectIntegrator": "direct", "PRBIntegrator": "prb",
+                "PRBVolpathIntegrator": "prbvolpath", "DirectMIS": "direct_mis",
+                "PathRR": "path_rr"}
+
+
+def plugin_name(integrator) -> str:
+    """The plugin name of a loaded integrator (``""`` where unknown)."""
+    name = getattr(integrator, "NAME", None)
+    if name:
+        return name
+    return _CLASS_NAMES.get(integrator.class_name(), _CLASS_NAMES.get(
+        type(integrator).__name__, ""))
+
+
+def reference_for(integrator: dict, scene=None) -> dict:
+    """The built-in integrator (with the parameters it shares) that serves as reference;
+    where it ignores part of ``scene`` (medium emission, media), :data:`CAPABLE` with
+    the same shared parameters."""
     twin = _builtin_twin(integrator)
     if twin["type"] not in BUILTIN_PARAMS:
         raise ValueError(f"no reference known for integrator '{integrator['type']}'; known: "
                          f"{', '.join(sorted(set(BUILTIN) | set(BUILTIN_PARAMS)))}; or give "
                          "--reference")
+    if scene is not None and ignores(scene, twin["type"]):
+        return {**twin, "type": CAPABLE}
     return twin
+
+
+def check_reference(reference: dict, scene, scene_path: str) -> None:
+    """Refuse, in one line, a reference that leaves part of the scene out."""
+    missing = ignores(scene, reference["type"])
+    if missing:
+        raise ValueError(f"--reference {label(reference)} ignores the {missing} of "
+                         f"{scene_path}, so every error against it would be wrong; use one "
+                         f"that renders it (e.g. {CAPABLE} or volpath_raymarch)")
 
 
 #: what a reference-cache entry holds (``.npz``); ``checksum`` covers all the others
@@ -208,6 +262,7 @@ class Row:
     efficiency: float                    # 1 / (rel. MSE x seconds)
     invalid: int                         # NaN/Inf samples (counted in the kernel)
     builtin: bool                        # a Mitsuba built-in (not one of our plugins)
+    ignores: str = ""                    # the part of the scene it does not render (ignores)
     rel_mse_trimmed: float = math.nan    # the other metrics of tools.metrics, beside rel. MSE
     mape: float = math.nan
     smape: float = math.nan
@@ -261,11 +316,12 @@ class Report:
 class _Run:
     """One integrator being measured: running sum, timed passes, curve."""
 
-    def __init__(self, spec: dict, reference: dict | None = None):
+    def __init__(self, spec: dict, scene, reference: dict | None = None):
         import mitsuba as mi
         from mitsuba_plugins.validity import counted
         self.spec = spec
-        self.reference_spec = reference or reference_for(spec)
+        self.ignores = ignores(scene, spec["type"])
+        self.reference_spec = reference or reference_for(spec, scene)
         self.reference = label(self.reference_spec)
         self.ref: stats.Estimate | None = None          # set with the reference (use_reference)
         self.floor, self.measured = 0.0, math.nan
@@ -297,7 +353,7 @@ class _Run:
         return Row(label(self.spec), self.reference, self.ref.spp, self.passes * spp_per_pass,
                    self.passes, self.seconds, err, self.measured,
                    stats.efficiency(err, self.seconds),
-                   self.invalid, not is_ours(self.spec["type"]),
+                   self.invalid, not is_ours(self.spec["type"]), ignores=self.ignores,
                    **{k: v for k, v in last.items() if k != "rel_mse"},
                    ttuv=metrics.time_to_unit_variance(err, self.seconds),
                    curve_seconds=list(self.curve_seconds),
@@ -343,8 +399,10 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
         raise ValueError(f"-i lists {', '.join(repr(n) for n in twice)} more than once; "
                          "allowed: each integrator (with its parameters) once")
     scene = load_scene(scene_path, res)
+    if reference is not None:
+        check_reference(reference, scene, scene_path)
     references = {}
-    runs = [_Run(spec, reference) for spec in integrators]   # validated before any rendering
+    runs = [_Run(spec, scene, reference) for spec in integrators]   # validated before rendering
     for run in runs:
         if run.reference not in references:
             references[run.reference] = cached_reference(scene, scene_path, res, run.reference_spec,
@@ -384,7 +442,8 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
     for row, spec in zip(rows, integrators):
         twin = _builtin_twin(spec)
         builtin = next((r for r, s in zip(rows, integrators) if s == twin and r is not row), None)
-        if builtin is not None:
+        # a built-in that leaves part of the scene out renders another image: no ratio
+        if builtin is not None and not builtin.ignores:
             row.time_ratio = row.seconds / builtin.seconds
             row.rel_mse_ratio = row.rel_mse / builtin.rel_mse if builtin.rel_mse > 0 else math.nan
             row.efficiency_ratio = row.efficiency / builtin.efficiency

@@ -36,11 +36,12 @@ COLUMNS = (  # header, Row attribute, format
     ("FLIP", "flip", "{:.4f}"),
     ("time to unit var. [s]", "ttuv", "{:.3e}"),
     ("NaN/Inf samples", "invalid", "{}"),
+    ("ignores", "ignores", "{}"),
 )
 
 
 def _cell(value, fmt: str) -> str:
-    if isinstance(value, float) and math.isnan(value):
+    if (isinstance(value, float) and math.isnan(value)) or value == "":
         return "-"
     return fmt.format(value)
 
@@ -75,6 +76,11 @@ def legend(report: Report) -> str:
     for name, ref in report.references.items():
         lines.append(f"reference {name}: {ref.spp} spp in {ref.passes} passes, own rel. MSE "
                      f"{floors[name]:.2e}")
+    for r in report.rows:
+        if r.ignores:
+            lines.append(f"WARNING: {r.integrator} ignores the {r.ignores} of this scene: its "
+                         f"error against {r.reference} counts the light it leaves out, and no "
+                         "row is compared with it (ratios '-').")
     limited = [r.integrator for r in report.rows
                if floors[r.reference] > FLOOR_SHARE * r.rel_mse_measured]
     if limited:
