@@ -170,7 +170,9 @@ class _Worker:
 def grid_list(path) -> list:
     """The grids of ``path`` as :class:`~mitsuba_plugins.vdbfile.GridEntry` (read from the
     header, without OpenVDB)."""
+    from mitsuba_plugins.gridheader import check_regular_file
     from mitsuba_plugins.vdbfile import VdbHeaderError, read_grid_list
+    check_regular_file(path)       # a FIFO would block the header read forever
     if leaf_reader() is None:
         openvdb_python(path)       # reading a .vdb needs it: say so first
     try:

@@ -318,12 +318,27 @@ def _loop(path):
     (lambda p: os.symlink(p.with_name("gone.vol"), p), "which does not exist"),
     (lambda p: None, "file does not exist"),
 ])
-def test_grid_file_kinds_are_named(tmp_path, make, message):
-    path = tmp_path / "g.vol"
+@pytest.mark.parametrize("suffix", [".vol", ".npy", ".vdb"])
+def test_grid_file_kinds_are_named(tmp_path, make, message, suffix):
+    path = tmp_path / f"g{suffix}"
     make(path)
     with pytest.raises(gridio.GridFileError,
                        match=re.escape(f"grid file '{path}': ") + ".*" + re.escape(message)):
         gridio.read_header(path)
+
+
+@pytest.mark.parametrize("suffix", [".vol", ".npy", ".vdb"])
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_grid_info_refuses_a_fifo(tmp_path, suffix, json_flag):
+    """Issue 46.4: ``grid info`` on a FIFO named ``.vdb`` hung forever (its grid list
+    was read without the check); run in a child process so that a hang fails, not
+    blocks, the suite."""
+    path = tmp_path / f"pipe{suffix}"
+    os.mkfifo(path)
+    done = subprocess.run([sys.executable, "-m", "mitsuba_plugins.tools.cli", "grid", "info",
+                           str(path), *json_flag], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1, done
+    assert "is a FIFO (named pipe), not a regular file" in done.stderr, done.stderr
 
 
 def test_oversized_header_names_the_file(tmp_path):
