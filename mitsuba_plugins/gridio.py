@@ -236,6 +236,7 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
     if ext == ".vdb":
         from mitsuba_plugins.vdb import write_vdb
         name = re.sub(r"\[\d+\]$", "", grid)    # an address name[k] writes grid 'name'
+        _check_no_grid_lost(target, name)
         report(f"{target}: grid {name!r}, {x} x {y} x {z} x {c} voxels, zeros left inactive")
         with atomic_path(target) as tmp:
             write_vdb(tmp, name, header.shape, _index_to_world(header, lo, hi),
@@ -256,6 +257,25 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
             check_values(header.path, "data", slab)
             f.write(np.ascontiguousarray(slab, dtype="<f4").tobytes())
     return {"shape": header.shape, "bytes": size, "bbox": (lo, hi), "rotated": rotated}
+
+
+def _check_no_grid_lost(target, name: str) -> None:
+    """Refuse to replace an existing ``.vdb`` that holds a grid other than the one grid
+    ``name`` the output holds (``grid convert f.vdb f.vdb`` dropped every other grid of
+    the file without a word: issue 46)."""
+    from mitsuba_plugins.vdb import grid_list
+    if not os.path.isfile(target):
+        return
+    try:
+        held = [e.address for e in grid_list(target)]
+    except GridFileError:
+        return                  # not an OpenVDB file: no grid to lose
+    lost = [a for a in held if a != name]
+    if lost or len(held) > 1:
+        raise GridFileError(
+            f"OUT '{os.fspath(target)}' holds the grid(s) {', '.join(map(repr, held))}; the "
+            f"output holds grid {name!r} alone, so the others would be lost; write to "
+            "another file (grids are never dropped)")
 
 
 def _checked(header: GridHeader, slab: np.ndarray) -> np.ndarray:

@@ -287,6 +287,32 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def test_grid_convert_never_drops_a_grid(multi, tmp_path, capsys):
+    """Issue 46.5: ``grid convert f.vdb f.vdb`` kept one grid and dropped the others
+    (the fire file lost 'temperature'), and converting onto any multi-grid .vdb replaced
+    it without a word. Refused in one line, the file untouched; a one-grid .vdb and a
+    new file are still written."""
+    import shutil
+    target = tmp_path / "multi.vdb"
+    shutil.copy(multi, target)
+    before = target.read_bytes()
+    for source in (target, SCENES / "data" / "smoke.vol"):
+        assert cli.main(["grid", "convert", str(source), str(target),
+                         "--grid", "density[1]"]) == 2
+        err = capsys.readouterr().err
+        assert "holds the grid(s) 'density[0]', 'density[1]', 'density[2]', " \
+               "'temperature'" in err and "the others would be lost" in err, err
+        assert target.read_bytes() == before
+    fire = tmp_path / "fire.vdb"
+    shutil.copy(SCENES / "data" / "fire.vdb", fire)
+    assert cli.main(["grid", "convert", str(fire), str(fire)]) == 2
+    assert "'temperature'" in capsys.readouterr().err
+    one = tmp_path / "one.vdb"
+    assert cli.main(["grid", "convert", str(multi), str(one), "--grid", "temperature"]) == 0
+    assert cli.main(["grid", "convert", str(one), str(one), "--grid", "temperature"]) == 0
+    assert [g.name for g in vdbfile.read_grid_list(one)] == ["temperature"]
+
+
 def test_a_three_channel_grid_converts_to_vdb_and_back(tmp_path, capsys):
     source = SCENES / "data" / "chromatic.vol"
     assert cli.main(["grid", "convert", str(source), str(tmp_path / "c.vdb")]) == 0
