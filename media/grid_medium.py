@@ -275,7 +275,7 @@ class GridMedium(mi.Medium):
     def _load_temperature(self, p: Params, to_world: mi.ScalarTransform4f) -> None:
         """``temperature_grid`` and its offset and scale (fire, :mod:`blackbody`)."""
         offset = p.float("temperature_offset", 0.0)
-        scale = p.float("temperature_scale", 1.0, lo=0.0)
+        scale = p.float("temperature_scale", 1.0, lo=0.0, lo_open=True)
         if not p.has("temperature_grid"):
             for name in ("temperature_offset", "temperature_scale"):
                 if p.has(name):

@@ -103,8 +103,9 @@ def _open(path, address):
         _fail(f"out of memory reading grid {address!r}{_limit_text()}")
     except Exception as error:  # OpenVDB's IoError, KeyError, ...: one line for the caller
         text = str(error)
-        if "bad_alloc" in text:
-            _fail(f"out of memory reading grid {address!r}{_limit_text()}")
+        if "bad_alloc" in text:       # also what damaged sizes in a grid's data give
+            _fail(f"out of memory reading grid {address!r}{_limit_text()}, or its data is "
+                  "damaged (a corrupt or truncated file asks for a huge allocation)")
         _fail(f"{type(error).__name__}: {text}")
 
 

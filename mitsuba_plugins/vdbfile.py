@@ -70,7 +70,9 @@ class _Reader:
 
     def seek(self, offset: int) -> None:
         if not 0 <= offset <= self.size:
-            raise VdbHeaderError(f"a grid offset {offset} outside the file's {self.size} bytes")
+            raise VdbHeaderError(f"truncated: a grid ends at byte {offset}, past the end "
+                                 f"of the file's {self.size} bytes" if offset > self.size else
+                                 f"a grid offset {offset} outside the file's {self.size} bytes")
         self.f.seek(offset)
 
 

@@ -366,3 +366,52 @@ def test_oversized_header_names_the_file(tmp_path):
     with pytest.raises(gridio.GridFileError,
                        match=f"grid file '{path}': 1700 x 1700 x 1700 x 1 = 4.913e\\+09 values"):
         gridio.read_header(path)
+
+
+# -- issue 46's weak answers: each one clear line ------------------------------------------
+@pytest.mark.parametrize("args, message", [
+    (["render", "scenes/cornell_box.xml", "--spp", "4294967296"],
+     "--spp = 4294967296 is invalid; allowed: an integer in [1, 4294967295]"),
+    (["render", "scenes/cornell_box.xml", "--res", "100000"],
+     "--res = 100000 is invalid; allowed: an integer in [1, 16384]"),
+    (["render", "scenes/"], "scene 'scenes/' is a folder; give a scene file (.xml)"),
+    (["render", "scenes/cornell_box.xml", "-i", "path_rr:max_depth=5:max_depth=6"],
+     "integrator option 'max_depth' is given twice in 'path_rr:max_depth=5:max_depth=6'"),
+    (["compare", "scenes/cornell_box.xml", "-i", "path_rr", "--spp", "7", "--passes", "2"],
+     "--spp = 7 is invalid; allowed: a multiple of --passes (2)"),
+])
+def test_weak_answers_are_one_clear_line(args, message, capsys, tmp_path):
+    """Before: nanobind's "Invoked with types", "Tensor(): invalid size specified",
+    "scene file not found", a repeated option accepted, 6 spp rendered for 7."""
+    rc = cli.main([*args, "-o", str(tmp_path / ("o.exr" if args[0] == "render" else "o"))])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err, err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+def test_grid_info_reports_every_file(tmp_path, capsys):
+    """``grid info a.vdb missing.vdb b.vdb`` stopped at the missing file with a raw
+    Errno and status 2; every file is reported, status 1."""
+    bad = tmp_path / "a.vdb"
+    bad.write_bytes(b"xx")
+    rc = cli.main(["grid", "info", str(bad), str(tmp_path / "missing.vdb"),
+                   str(SCENES / "data" / "fire.vdb")])
+    out, err = capsys.readouterr()
+    assert rc == 1
+    assert "missing.vdb': file does not exist" in err and "a.vdb': not a readable" in err
+    assert "2 of 3 grid file(s) invalid" in err and "temperature" in out
+
+
+def test_a_truncated_vdb_says_so(tmp_path):
+    raw = (SCENES / "data" / "fire.vdb").read_bytes()
+    cut = tmp_path / "cut.vdb"
+    cut.write_bytes(raw[:len(raw) * 9 // 10])
+    with pytest.raises(gridio.GridFileError, match="truncated: a grid ends at byte"):
+        gridio.read_header(cut)
+
+
+def test_temperature_scale_range_says_what_is_allowed():
+    with pytest.raises(Exception, match=r"'temperature_scale' = 0.0 is invalid; allowed: a "
+                                        r"finite number > 0"):
+        mi.load_dict({"type": "grid_medium", "filename": str(SCENES / "data" / "fire.vdb"),
+                      "temperature_grid": "temperature", "temperature_scale": 0.0})

@@ -254,6 +254,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: largest --res: a 16384^2 film of 4 channels still indexes below 2^32 (Dr.Jit's
+#: array index; 100000 failed inside Mitsuba with "Tensor(): invalid size specified")
+MAX_RES = 16384
+#: largest --spp: Mitsuba's sample count is a 32-bit unsigned integer
+MAX_SPP = 2 ** 32 - 1
+
+
 class OptionError(ValueError):
     """A command-line option out of its range."""
 
@@ -268,8 +275,8 @@ def _int_range(args, name: str, lo: int, hi: int | None = None):
 def check_options(args) -> None:
     """Every option in range, and every output writable, before any work starts."""
     if args.command in ("render", "compare", "reference"):
-        _int_range(args, "--res", 1)
-        _int_range(args, "--spp", 1)
+        _int_range(args, "--res", 1, MAX_RES)
+        _int_range(args, "--spp", 1, MAX_SPP)
         _int_range(args, "--seed", 0, MAX_SEED)
     if args.command == "render":
         out = render_target(args)
@@ -278,7 +285,11 @@ def check_options(args) -> None:
     elif args.command == "compare":
         _int_range(args, "--passes", 1)
         _int_range(args, "--spp-per-pass", 1)
-        _int_range(args, "--ref-spp", 1)
+        _int_range(args, "--ref-spp", 1, MAX_SPP)
+        if args.time_budget is None and args.spp_per_pass is None and args.passes and \
+                args.spp and args.spp % args.passes:
+            raise OptionError(f"--spp = {args.spp} is invalid; allowed: a multiple of "
+                              f"--passes ({args.passes})")
         budget = args.time_budget
         if budget is not None and not (math.isfinite(budget) and 0 < budget <= MAX_TIME_BUDGET):
             raise OptionError(f"--time-budget = {budget} is invalid; allowed: a number of "

@@ -56,6 +56,9 @@ def parse_integrator(spec: str) -> dict:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise ValueError(f"integrator option '{pair}' in '{spec}' is not of the form key=value")
+        if key in out:
+            raise ValueError(f"integrator option '{key}' is given twice in '{spec}'; allowed: "
+                             "each option once")
         out[key] = _parse_value(value)
     return out
 
@@ -389,6 +392,9 @@ def compare(scene_path: str, integrators: list[dict], spp: int = 64, passes: int
     else:
         if passes < 1 or spp < passes:
             raise ValueError(f"--spp ({spp}) must be >= --passes ({passes}) >= 1")
+        if spp_per_pass is None and spp % passes:
+            raise ValueError(f"--spp = {spp} is invalid; allowed: a multiple of --passes "
+                             f"({passes}), which split it into equal passes")
         spp_per_pass = spp_per_pass or spp // passes
         ref_spp = ref_spp or max(1024, 16 * spp)
     if not integrators:

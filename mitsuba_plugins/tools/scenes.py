@@ -11,6 +11,8 @@ from pathlib import Path
 
 def load_scene(path: str, res: int | None = None):
     import mitsuba as mi
+    if Path(path).is_dir():
+        raise FileNotFoundError(f"scene '{path}' is a folder; give a scene file (.xml)")
     if not Path(path).is_file():
         raise FileNotFoundError(f"scene file not found: {path}")
     params = {"res": str(res)} if res else {}
