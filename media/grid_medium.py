@@ -206,6 +206,8 @@ class GridMedium(mi.Medium):
         # into a constant of the first render's width, and a render at another spp then
         # failed ("operands have incompatible sizes"); opaque values also reuse the kernel
         dr.make_opaque(self.scale, self.sigma_t_factor)
+        #: the last accepted scale and sigma_t factor (put back where an edit is refused)
+        self._accepted = (scale, floats(self.sigma_t_factor))
         self._fold_gray_factor()
         #: the user's has_spectral_extinction, or None: derived from the extinction
         self._spectral_extinction = p.bool("has_spectral_extinction", False) \
@@ -458,18 +460,23 @@ class GridMedium(mi.Medium):
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys=None):
+        # a refused value is replaced by the last accepted one, so that params holds
+        # what renders (a NaN stayed in params while renders used the old value)
         scale = floats(self.scale)[0]
         if not (np.isfinite(scale) and scale >= 0):
+            mi.set_property(self.scale, mi.Float(self._accepted[0]))
             raise PluginParameterError(
                 f"grid_medium: parameter 'scale' = {scale!r} is invalid; allowed: a finite "
-                "number >= 0")
+                f"number >= 0 (the previous value {self._accepted[0]:g} is kept)")
         factor = floats(self.sigma_t_factor)
         if not all(np.isfinite(f) and f >= 0 for f in factor):
+            mi.set_property(self.sigma_t_factor, mi.Color3f(self._accepted[1]))
             raise PluginParameterError(
                 f"grid_medium: parameter 'sigma_t' = {factor} is invalid; allowed: finite "
-                "values >= 0")
+                f"values >= 0 (the previous value {self._accepted[1]} is kept)")
         self.multiplier = Multiplier(factor)
         dr.make_opaque(self.scale, self.sigma_t_factor)
+        self._accepted = (scale, factor)
         self._fold_gray_factor()
         stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
         self.store.changed(keys)

@@ -83,6 +83,7 @@ class DenseStore:
                                     filter_mode=INTERPOLATIONS[interpolation],
                                     wrap_mode=dr.WrapMode.Clamp)
         self._loaded = builder      # bounds built while streaming, used once
+        self._host = None           # the values of the last edit, read once (changed)
 
     def eval(self, p: mi.Point3f, wavelengths, active):
         """The value at local point ``p`` as a spectrum."""
@@ -93,10 +94,9 @@ class DenseStore:
 
     def bounds(self, multiplier, cells: int, path) -> Bounds:
         builder, self._loaded = self._loaded, None
-        if builder is None:
-            data = self.data.numpy()
-            if not self.values.converted:   # exposed through traverse: may have changed
-                gridio.check_values(path, "density", data)
+        if builder is None:       # after an edit: checked (and read) by changed()
+            data, self._host = self._host, None
+            data = self.texture.tensor().numpy() if data is None else data
             builder = new_builder(data.shape, self.values, multiplier, cells).add_all(data)
         return _built(builder, self.to_local)
 
@@ -109,10 +109,16 @@ class DenseStore:
             callback.put("data", self.data, mi.ParamFlags.Differentiable)
 
     def changed(self, keys=None) -> None:
-        if tuple(self.data.shape) != tuple(self.texture.tensor().shape):
+        previous = self.texture.tensor()
+        if tuple(self.data.shape) != tuple(previous.shape):
+            shape = tuple(self.data.shape)
+            mi.set_property(self.data, mi.TensorXf(previous))
             raise PluginParameterError(
                 f"grid_medium: parameter 'data' changed shape from "
-                f"{tuple(self.texture.tensor().shape)} to {tuple(self.data.shape)}")
+                f"{tuple(previous.shape)} to {shape}; allowed: the loaded shape (the "
+                "previous values are kept)")
+        if not self.values.converted:   # exposed through traverse: may have changed
+            self._host = keep_or_restore("data", self.data, previous)
         self.texture.set_tensor(self.data)
 
     def describe(self) -> str:
@@ -169,17 +175,42 @@ class SparseStore:
                 f"{self.grid.nbytes / 2**20:.1f} MiB)")
 
 
+def keep_or_restore(name: str, value, previous, lo: float = 0.0) -> None:
+    """Check an edited grid parameter ``name`` (every value finite, >= ``lo``); where one
+    is not, put ``previous`` back into it (``params`` then holds what renders) and raise
+    naming the parameter and the allowed range. Returns the values read (numpy)."""
+    values = np.asarray(value.numpy() if hasattr(value, "numpy") else value)
+    bad = int(np.count_nonzero(~np.isfinite(values)))
+    low = int(np.count_nonzero(values < lo)) if not bad else 0
+    if not (bad or low):
+        return values
+    mi.set_property(value, type(value)(previous))
+    what = f"{bad} non-finite value(s) (NaN or Inf)" if bad else \
+        f"{low} value(s) below {lo:g} (smallest {float(values.min()):g})"
+    raise PluginParameterError(
+        f"grid_medium: parameter '{name}' holds {what}; allowed: finite values >= {lo:g}. "
+        "The previous values are kept (in params too)")
+
+
 def synchronize(grid, name: str, keys) -> bool:
     """After an edit of a sparse grid's exposed bricks (parameter ``name``): the pool
     re-derived from the owning copies (:meth:`SparseGrid.synchronize`) and every value
-    checked (finite, >= 0). False where the bricks were not exposed or not changed."""
+    checked (finite, >= 0; otherwise the previous bricks are put back). False where the
+    bricks were not exposed or not changed."""
     if not grid.exposed or (keys is not None and name not in keys):
         return False
+    previous = mi.Float(grid.pool)
     try:
         grid.synchronize()
     except ValueError as error:
         raise PluginParameterError(f"grid_medium: parameter '{name}' {error}") from None
-    gridio.check_values(f"<{name}>", name, grid.pool.numpy())
+    try:
+        keep_or_restore(name, grid.pool, previous)
+    except PluginParameterError:
+        grid.pool = previous
+        tensor = grid.bricks()
+        mi.set_property(tensor, mi.TensorXf(previous, shape=tuple(tensor.shape)))
+        raise
     return True
 
 

@@ -249,7 +249,7 @@ def test_traverse_and_parameters_changed(grids):
     img = _render(scene)
     data[0, 0, 0, 0] = np.nan
     params[f"{key}.data"] = mi.TensorXf(data)
-    with pytest.raises(Exception, match="non-finite"):
+    with pytest.raises(Exception, match="parameter 'data' holds 1 non-finite"):
         params.update()
     # emission is exposed to integrators as radiance
     assert medium.has_emission
@@ -343,3 +343,41 @@ def test_a_scene_renders_at_several_sample_counts():
         for spp in (8, 16):
             assert np.all(np.isfinite(render(scene, {"type": name, "max_depth": 4}, spp=spp)))
 
+
+
+@pytest.mark.parametrize("storage", ["dense", "sparse"])
+@pytest.mark.parametrize("key, bad, message", [
+    ("data", np.nan, "parameter '{k}' holds 1 non-finite value(s) (NaN or Inf); allowed: "
+                     "finite values >= 0. The previous values are kept"),
+    ("data", -1.0, "parameter '{k}' holds 1 value(s) below 0 (smallest -1); allowed: "),
+    ("scale", np.inf, "parameter 'scale' = inf is invalid; allowed: a finite number >= 0 "
+                      "(the previous value 2 is kept)"),
+    ("sigma_t", np.nan, "parameter 'sigma_t' = [nan, 1.0, 1.0] is invalid"),
+])
+def test_a_refused_edit_names_the_parameter_and_params_holds_what_renders(
+        grids, storage, key, bad, message):
+    """Issue 46: a NaN put through ``params.update()`` was refused naming the grid *file*,
+    and ``params`` kept the NaN while renders used the old data. The message names the
+    parameter; ``params`` and the renders hold the previous values."""
+    scene = _scene({"type": "grid_medium", "filename": str(grids / "gray.vol"),
+                    "scale": 2.0, "storage": storage})
+    params = mi.traverse(scene)
+    prefix = "box.interior_medium"
+    grid_key = f"{prefix}.{'data' if storage == 'dense' else 'bricks'}"
+    name = {"data": grid_key, "scale": f"{prefix}.scale", "sigma_t": f"{prefix}.sigma_t"}[key]
+    if key == "sigma_t" and not mi.is_rgb:
+        pytest.skip("sigma_t is not exposed as a differentiable RGB value outside RGB")
+    before = np.array(params[name]).copy()
+    img = _render(scene)
+    edited = before.copy().astype(np.float32)
+    edited.reshape(-1)[-1 if key != "data" else np.flatnonzero(edited)[0]] = bad
+    if key == "sigma_t":
+        edited = np.array([[bad], [1.0], [1.0]], np.float32)
+    params[name] = type(params[name])(edited.reshape(before.shape) if key == "data" else
+                                      edited.ravel()[0] if key == "scale" else edited)
+    with pytest.raises(Exception) as error:
+        params.update()
+    text = str(error.value).splitlines()[-1]
+    assert message.format(k=grid_key.rsplit(".", 1)[1]) in text, text
+    np.testing.assert_array_equal(np.array(params[name]), before)
+    assert np.array_equal(_render(scene), img)

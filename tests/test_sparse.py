@@ -223,7 +223,7 @@ def test_edited_bricks_keep_copies_in_step(tmp_path, monkeypatch):
     assert float(medium.global_majorant[0]) == pytest.approx(2 * before, rel=1e-3)
     edited[1, 0, 0, 0] = np.nan
     params["bricks"] = mi.TensorXf(edited)
-    with pytest.raises(Exception, match="bricks: 1 non-finite"):
+    with pytest.raises(Exception, match="parameter 'bricks' holds 1 non-finite"):
         params.update()
     params["bricks"] = mi.TensorXf(pool[:2])
     with pytest.raises(Exception, match="parameter 'bricks' changed shape"):
