@@ -296,8 +296,11 @@ class GridMedium(mi.Medium):
                 "allowed: > 0 (kelvin per unit of the grid)")
         if self.emission is None:
             self.emission = p.volume("emission", 1.0)
+        # any finite value: T = (value - offset) x scale, and a voxel at or below 0 K
+        # emits nothing (a negative grid made positive by the offset was refused)
         grid, _, to_local = stores.load_side_grid(self.filename, name, to_world,
-                                                  "temperature_grid", channels=(1,))
+                                                  "temperature_grid", channels=(1,),
+                                                  lo=-np.inf)
         hottest = (float(grid.extrema()[0].max(initial=0.0)) - offset) * scale
         if hottest > blackbody.T_MAX:
             raise PluginParameterError(

@@ -258,6 +258,39 @@ class VolumeStore:
 
 
 # -- loading a grid file ------------------------------------------------------------------
+#: negative values down to -TINY_NEGATIVE are taken as float noise of simulation output
+#: (one voxel of -1e-6 made a grid unusable): set to 0, with one warning per grid that
+#: says how many; more negative values are refused
+TINY_NEGATIVE = 1e-4
+
+
+class ValueCheck:
+    """Checks the values of one grid as they stream in (finite, >= ``lo``), setting
+    tiny negatives to 0 where ``lo`` is 0; :meth:`report` warns once how many were."""
+
+    def __init__(self, path, what: str, lo: float = 0.0):
+        self.path, self.what, self.lo = path, what, lo
+        self.clamped, self.smallest = 0, 0.0
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        if self.lo == 0.0 and values.size:
+            tiny = (values < 0) & (values >= -TINY_NEGATIVE)
+            n = int(np.count_nonzero(tiny))
+            if n:
+                self.clamped += n
+                self.smallest = min(self.smallest, float(values[tiny].min()))
+                values = np.where(tiny, np.float32(0), values)
+        gridio.check_values(self.path, self.what, values, self.lo)
+        return values
+
+    def report(self) -> None:
+        if self.clamped:
+            import warnings
+            warnings.warn(f"grid_medium: grid file '{self.path}': {self.what}: "
+                          f"{self.clamped} value(s) in [-{TINY_NEGATIVE:g}, 0) (smallest "
+                          f"{self.smallest:g}) set to 0", stacklevel=2)
+
+
 def load(header, storage: str, interpolation: str, to_local, multiplier, cells: int):
     """A dense or sparse store of the grid file of ``header`` (``storage`` ``auto``:
     sparse when that takes at most half the dense bytes), every value checked."""
@@ -288,9 +321,9 @@ def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
     builder = new_builder(stored, values, multiplier, cells)
     flat = dr.zeros(mi.Float, int(np.prod(stored)))
     slab_elems = int(np.prod(stored[1:]))
+    check = ValueCheck(header.path, "density")
     for z0, slab in gridio.iter_slabs(header):
-        gridio.check_values(header.path, "density", slab)
-        slab = values.convert(slab)
+        slab = values.convert(check(slab))
         builder.add(z0, slab)
         flat_slab = slab.reshape(-1)
         for start in range(0, flat_slab.size, UPLOAD_CHUNK):
@@ -299,35 +332,37 @@ def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
                               z0 * slab_elems + start + chunk.size)
             dr.scatter(flat, mi.Float(chunk), index)
             dr.eval(flat)
+    check.report()
     return mi.TensorXf(flat, shape=stored), builder
 
 
-def read_bricks(header, what: str, values: GridValues) -> bricks.BrickBuilder:
+def read_bricks(header, what: str, values: GridValues,
+                lo: float = 0.0) -> bricks.BrickBuilder:
     """A filled :class:`~mitsuba_plugins.bricks.BrickBuilder` of a grid file, every value
-    checked (finite, >= 0; ``what`` names the data in errors) and stored as ``values``
-    says (a brick's extrema are then those of the majorant factors of upsampled RGB).
+    checked (:class:`ValueCheck`: finite, >= ``lo``; ``what`` names the data in errors)
+    and stored as ``values`` says (a brick's extrema are then those of the majorant factors of upsampled RGB).
     For a .vdb the OpenVDB worker cuts the bricks and only stored ones cross the pipe (a
     non-finite or negative value is non-zero, so its brick is among the checked ones)."""
     builder = bricks.BrickBuilder((*header.shape[:3], values.channels),
                                   bounds=values.factors if values.upsampled else None)
+    check = ValueCheck(header.path, what, lo)
     if header.vdb_grid is not None:
         from mitsuba_plugins.vdb import iter_vdb_bricks
         for row, cols, blocks in iter_vdb_bricks(header):
-            gridio.check_values(header.path, what, blocks)
-            builder.add_row(row, cols, values.convert(blocks))
+            builder.add_row(row, cols, values.convert(check(blocks)))
     else:
         for z0, slab in gridio.iter_slabs(header):
-            gridio.check_values(header.path, what, slab)
-            builder.add(z0, values.convert(slab))
+            builder.add(z0, values.convert(check(slab)))
     builder.finish_check()
+    check.report()
     return builder
 
 
 def load_side_grid(path: str, name: str, to_world: mi.ScalarTransform4f,
-                   parameter: str = "emission_grid", channels=(1, 3)):
+                   parameter: str = "emission_grid", channels=(1, 3), lo: float = 0.0):
     """``(SparseGrid, GridValues, world -> local)`` of grid ``name`` of a .vdb (values
-    >= 0), the grid that ``grid_medium``'s ``parameter`` names (its errors say so), of
-    ``channels`` channels in the file."""
+    finite and >= ``lo``), the grid that ``grid_medium``'s ``parameter`` names (its
+    errors say so), of ``channels`` channels in the file."""
     from mitsuba_plugins.sparse import SparseGrid
     header = gridio.read_header(path, name)
     if header.channels not in channels:
@@ -336,7 +371,7 @@ def load_side_grid(path: str, name: str, to_world: mi.ScalarTransform4f,
             f"{header.channels} channels in '{path}'; allowed: "
             + " or ".join({1: "a float grid", 3: "a vec3 grid"}[c] for c in channels))
     values = GridValues(header.channels)
-    builder = read_bricks(header, f"{parameter} {name!r}", values)
+    builder = read_bricks(header, f"{parameter} {name!r}", values, lo)
     grid = SparseGrid((*header.shape[:3], values.channels), builder.index,
                       builder.pool_chunks(), builder.stored)
     return grid, values, placement.vdb_to_world(header, to_world).inverse()

@@ -8,7 +8,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import LUMINANCE, SCENES, assert_same_expectation, estimate, load, render
+from helpers import (LUMINANCE, SCENES, assert_same_expectation, estimate, load, medium_at,
+                     render)
 from mitsuba_plugins import gridio
 
 RES, SPP = 32, 16
@@ -381,3 +382,29 @@ def test_a_refused_edit_names_the_parameter_and_params_holds_what_renders(
     assert message.format(k=grid_key.rsplit(".", 1)[1]) in text, text
     np.testing.assert_array_equal(np.array(params[name]), before)
     assert np.array_equal(_render(scene), img)
+
+
+@pytest.mark.parametrize("storage", ["dense", "sparse"])
+def test_tiny_negatives_are_set_to_zero_with_a_warning(tmp_path, storage):
+    """Issue 46: one voxel of -1e-6 (common in simulation output) made a grid unusable.
+    Values in [-1e-4, 0) are set to 0 with one warning saying how many; the medium then
+    equals the same grid with zeros there; -0.01 is still refused."""
+    data = np.random.default_rng(5).uniform(0.0, 2.0, (8, 8, 8)).astype(np.float32)
+    data[1, 2, 3], data[4, 4, 4] = -1e-6, -3e-5
+    gridio.write_vol(tmp_path / "noisy.vol", data)
+    clean = np.maximum(data, 0.0)
+    gridio.write_vol(tmp_path / "clean.vol", clean)
+    with pytest.warns(UserWarning, match=r"density: 2 value\(s\) in \[-0.0001, 0\) "
+                                         r"\(smallest -3e-05\) set to 0"):
+        noisy = mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "noisy.vol"),
+                              "storage": storage})
+    reference = mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "clean.vol"),
+                              "storage": storage})
+    points = np.random.default_rng(6).uniform(0.0, 1.0, (500, 3))
+    np.testing.assert_array_equal(medium_at(noisy, "eval_sigma_t", points),
+                                  medium_at(reference, "eval_sigma_t", points))
+    data[0, 0, 0] = -0.01
+    gridio.write_vol(tmp_path / "negative.vol", data)
+    with pytest.raises(Exception, match="density: negative value -0.01; allowed: >= 0"):
+        mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "negative.vol"),
+                      "storage": storage})

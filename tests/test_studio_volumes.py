@@ -137,22 +137,26 @@ def fire_vdb(path, density, temperature, voxel=1.0 / 16):
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
-def test_uniform_fire_slab_matches_the_analytic_radiance(tmp_path, interpolation):
+@pytest.mark.parametrize("value, offset", [(30.0, 5.0), (-20.0, -45.0)])
+def test_uniform_fire_slab_matches_the_analytic_radiance(tmp_path, interpolation, value,
+                                                         offset):
     """An absorbing slab of density 1 at one temperature (grid value 30, offset 5, scale
     100 K: 2500 K, inside the sRGB gamut), seen through its 2 units: Le B(T) (1 -
     exp(-sigma_t 2)) per channel (t-test, 256 spp). In spectral variants the film
-    integrates Planck's law over the wavelengths: the same colour."""
+    integrates Planck's law over the wavelengths: the same colour. A negative grid that
+    the offset makes positive (-20, offset -45) is the same fire (it was refused: issue
+    46)."""
     # 12 voxels of 0.25 centred on the slab: a .vdb's voxel centres sit at the index
     # positions and trilinear lookups blend with the background 0 beyond the outer
     # centres, so the grid overhangs the cube [-1, 1]^3 by a voxel and a half
     n, voxel = 12, 0.25
     path = fire_vdb(tmp_path / "uniform.vdb", np.ones((n, n, n), np.float32),
-                    np.full((n, n, n), 30.0, np.float32), voxel=voxel)
+                    np.full((n, n, n), value, np.float32), voxel=voxel)
     sigma, Le = 0.7, 3.0
     shift = -(n - 1) * voxel / 2
     scene = emissive_slab(
         Le, filename=path, scale=sigma, temperature_grid="temperature",
-        temperature_offset=5.0, temperature_scale=100.0, interpolation=interpolation,
+        temperature_offset=offset, temperature_scale=100.0, interpolation=interpolation,
         to_world=mi.ScalarTransform4f().translate([shift] * 3))
     img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "volpath_delta"}),
                              seed=3, spp=256))
@@ -194,7 +198,8 @@ def test_fire_sparse_equals_dense(plume):
 
 
 @pytest.mark.parametrize("params, message", [
-    (dict(temperature_scale=0.0), "'temperature_scale' = 0 is out of range"),
+    (dict(temperature_scale=0.0), "'temperature_scale' = 0.0 is invalid; allowed: a finite "
+                                  "number > 0"),
     (dict(temperature_scale=1e5), "allowed: at most 100000 K"),
     (dict(emission_grid="temperature"), "give one of them"),
     (dict(temperature_grid="missing"), "missing"),
