@@ -54,17 +54,27 @@ def fail(path, what: str):
     raise GridFileError(f"grid file '{path}': {what}")
 
 
-def check_shape(path, shape):
+def check_shape(path, shape, dense: bool = True):
     z, y, x, c = shape
     if c not in GRID_CHANNELS:
         fail(path, f"{c} channels; allowed: {' or '.join(map(str, GRID_CHANNELS))}")
     if min(x, y, z) < MIN_RESOLUTION:
         fail(path, f"resolution {x} x {y} x {z} (X x Y x Z); each axis needs at least "
                     f"{MIN_RESOLUTION} cells")
+    if dense:
+        check_dense_size(path, shape)
+
+
+def check_dense_size(path, shape) -> None:
+    """Refuse a box too large to be held or read densely (2^32 values: Dr.Jit's array
+    index); a ``.vdb`` read into sparse bricks is checked by its bricks instead."""
+    z, y, x, c = shape
     values = x * y * z * c
     if values > MAX_VALUES:
+        hint = ("; grid_medium's storage = 'sparse' holds only its bricks"
+                if os.fspath(path).lower().endswith(".vdb") else "")
         fail(path, f"{x} x {y} x {z} x {c} = {values:.4g} values; a dense grid holds at most "
-                    f"2^32 - 1 = {MAX_VALUES:.4g} (Dr.Jit's array index is 32 bits)")
+                    f"2^32 - 1 = {MAX_VALUES:.4g} (Dr.Jit's array index is 32 bits){hint}")
 
 
 def check_regular_file(path) -> None:

@@ -34,7 +34,7 @@ import numpy as np
 # the header types live in gridheader (vdb.py uses them without importing this module)
 from mitsuba_plugins.gridheader import (GRID_CHANNELS, MAX_VALUES, MIN_RESOLUTION,  # noqa: F401
                                         GridFileError, GridHeader, check_regular_file,
-                                        check_shape as _check_shape, check_values,
+                                        check_dense_size, check_shape as _check_shape, check_values,
                                         fail as _fail)
 
 VOL_MAGIC = b"VOL"
@@ -129,6 +129,7 @@ def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):
     z, y, x, c = header.shape
     if header.vdb_grid is not None:
         from mitsuba_plugins.vdb import iter_vdb_slabs
+        check_dense_size(header.path, header.shape)    # a .vdb's box may be any size
         yield from iter_vdb_slabs(header, slab_bytes)
         return
     if header.fortran_order:
@@ -155,6 +156,7 @@ def read_grid(path, check: bool = True, grid: str = "density") -> tuple:
     With ``check``, non-finite and negative values raise :class:`GridFileError`.
     """
     header = read_header(path, grid)
+    check_dense_size(header.path, header.shape)
     data = np.empty(header.shape, dtype=np.float32)
     for z0, slab in iter_slabs(header):
         if check:

@@ -14,6 +14,7 @@ check fails.
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import drjit as dr
 import mitsuba as mi
@@ -316,8 +317,36 @@ def load(header, storage: str, interpolation: str, to_local, multiplier, cells: 
                        (maxima, minima, index))
 
 
+#: largest share of this machine's memory that dense storage may take
+DENSE_MEMORY_SHARE = 0.25
+
+
+def machine_memory() -> int:
+    """Bytes of physical memory of this machine (0 where unknown)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def check_dense_memory(header, stored) -> None:
+    """Refuse dense storage that would take over :data:`DENSE_MEMORY_SHARE` of this
+    machine's memory (two voxels of a .vdb spanning a 1203^3 box allocated ~7 GB without a
+    word), saying the size and the fix."""
+    nbytes = 4 * int(np.prod(stored))
+    limit = DENSE_MEMORY_SHARE * machine_memory()
+    if limit and nbytes > limit:
+        z, y, x, c = stored
+        raise PluginParameterError(
+            f"grid_medium: storage = 'dense' would allocate {nbytes / 1e9:.3g} GB for the "
+            f"{x} x {y} x {z} x {c} box of '{header.path}'; allowed: at most "
+            f"{limit / 1e9:.3g} GB here ({DENSE_MEMORY_SHARE:g} of this machine's memory); use "
+            "storage = 'sparse' (or 'auto'), which holds only the bricks with values")
+
+
 def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
     """The file streamed slab by slab into one device tensor, and its majorant builder."""
+    check_dense_memory(header, stored)
     builder = new_builder(stored, values, multiplier, cells)
     flat = dr.zeros(mi.Float, int(np.prod(stored)))
     slab_elems = int(np.prod(stored[1:]))

@@ -355,3 +355,38 @@ def test_tiles_and_bands_read_what_whole_rows_read(tmp_path, monkeypatch, chunk)
     np.testing.assert_array_equal(cut_index, index)
     np.testing.assert_array_equal(cut_pool, pool)
 
+
+
+@pytest.fixture(scope="module")
+def two_far_voxels(tmp_path_factory):
+    """Two voxels 2100 apart on each axis: an active box of 2103^3 = 9.3e9 voxels (over
+    2^32) that two bricks hold."""
+    path = tmp_path_factory.mktemp("far") / "far.vdb"
+    make_vdb(path, """
+        g = vdb.FloatGrid(); g.name = "density"
+        a = g.getAccessor(); a.setValueOn((0, 0, 0), 1.0); a.setValueOn((2100, 2100, 2100), 2.0)
+        grids.append(g)""")
+    return path
+
+
+def test_a_huge_sparse_box_loads_sparse_and_dense_is_refused_with_the_size(
+        two_far_voxels, monkeypatch):
+    """Issue 46: storage = 'dense' on a small .vdb whose two voxels span a huge box
+    allocated gigabytes without a word; sparse storage refused an active box over 2^32
+    voxels although two bricks hold it, speaking of "a dense grid"."""
+    from mitsuba_plugins import stores
+    medium = mi.load_dict({"type": "grid_medium", "filename": str(two_far_voxels),
+                           "storage": "sparse"})
+    assert medium.storage == "sparse" and medium.sparse.stored - 1 <= 8
+    assert mi.load_dict({"type": "grid_medium", "filename": str(two_far_voxels)}).storage \
+        == "sparse"
+    monkeypatch.setattr(stores, "machine_memory", lambda: 16e9)
+    with pytest.raises(Exception, match=r"storage = 'dense' would allocate 37.2 GB for the "
+                                        r"2103 x 2103 x 2103 x 1 box of .*allowed: at most 4 GB"
+                                        r" here .* use storage = 'sparse'"):
+        mi.load_dict({"type": "grid_medium", "filename": str(two_far_voxels),
+                      "storage": "dense"})
+    # what reads it densely says why, and what to use
+    with pytest.raises(gridio.GridFileError, match="a dense grid holds at most 2\\^32 - 1 .*"
+                                                   "storage = 'sparse' holds only its bricks"):
+        gridio.read_grid(two_far_voxels)
