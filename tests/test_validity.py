@@ -73,3 +73,65 @@ def test_builtins_are_counted_without_changing_the_image():
     a = np.array(mi.render(scene, integrator=raw, spp=8, seed=3))
     b = render(scene, raw, spp=8, seed=3)
     assert_same_render(b, a)
+
+
+def _messages(error: BaseException) -> str:
+    text = []
+    while error is not None:
+        text.append(str(error))
+        error = error.__cause__ or error.__context__
+    return " | ".join(text)
+
+
+@pytest.mark.parametrize("name", ["direct_mis", "path_rr", "volpath_delta",
+                                  "volpath_raymarch"])
+def test_a_scene_rendered_in_another_thread_is_refused(name):
+    """Issue 46: two threads rendering one scene hung volpath_delta at 100% CPU in 2 of
+    6 runs and gave different images in others. A render of a scene that another thread
+    is rendering is refused in one line; the same thread may render it again."""
+    import threading
+    from mitsuba_plugins.validity import one_thread
+    scene = load("smoke" if name.startswith("volpath") else "cornell_box", res=8)
+    integrator = mi.load_dict({"type": name})
+    errors = []
+
+    def other():
+        try:
+            mi.render(scene, integrator=integrator, spp=1)
+        except Exception as error:      # noqa: BLE001 - checked below
+            errors.append(_messages(error))
+    with one_thread(scene, "test"):     # this thread is rendering the scene
+        worker = threading.Thread(target=other)
+        worker.start()
+        worker.join(120)
+        assert not worker.is_alive()
+        mi.render(scene, integrator=integrator, spp=1)      # nesting in one thread
+    assert len(errors) == 1 and (f"{name}: this scene is being rendered in another "
+                                 "thread; one scene renders in one thread at a time") \
+        in errors[0], errors
+    assert np.all(np.isfinite(np.array(mi.render(scene, integrator=integrator, spp=1))))
+
+
+def test_concurrent_renders_of_one_scene_never_differ():
+    """Two threads at once, three times: each render either equals the one-thread image
+    bit for bit or is refused; none hangs."""
+    import threading
+    scene = load("smoke", res=16)
+    integrator = mi.load_dict({"type": "volpath_delta"})
+    one = np.array(mi.render(scene, integrator=integrator, spp=16, seed=1))
+    images, refused = [], []
+
+    def go():
+        try:
+            images.append(np.array(mi.render(scene, integrator=integrator, spp=16, seed=1)))
+        except Exception as error:      # noqa: BLE001 - checked below
+            refused.append("rendered in another thread" in _messages(error))
+    for _ in range(3):
+        threads = [threading.Thread(target=go) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+            assert not t.is_alive()
+    assert len(images) + len(refused) == 6 and all(refused)
+    assert all(np.array_equal(img, one) for img in images)
