@@ -22,6 +22,8 @@ import numpy as np
 
 #: temporary files being written now (removed if the process is interrupted)
 PENDING: set = set()
+#: ``[(temporary, target)]`` of the :func:`all_or_nothing` block under way, else None
+_BATCH: list | None = None
 #: what a ``null`` in our JSON outputs stands for
 JSON_NULL_MEANS = "null: not a finite number (NaN or infinity, e.g. a ratio to 0), " \
                   "which JSON cannot hold"
@@ -122,11 +124,15 @@ def atomic_path(path):
     os.close(fd)
     PENDING.add(tmp)
     existed = path.exists()
+    batch = _BATCH
     try:
         yield tmp
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.chmod(tmp, _mode_for(path))
+        if batch is not None:       # renamed with the others, once all are complete
+            batch.append((tmp, path))
+            return
         os.replace(tmp, path)
     except Exception as error:
         with contextlib.suppress(OSError):
@@ -136,13 +142,49 @@ def atomic_path(path):
         if tmp in reason:   # Mitsuba's stream errors name the temporary file
             reason = reason.split(tmp, 1)[1].lstrip('": ')
         raise OutputError(f"output '{path}': could not be written ({reason}); "
-                          + ("the file that was there is unchanged" if existed
+                          + ("none of this command's files was written (those already "
+                             "there are unchanged)" if batch is not None else
+                             "the file that was there is unchanged" if existed
                              else "nothing was written")) from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
     finally:
+        if batch is None:
+            PENDING.discard(tmp)
+
+
+def staged(path) -> Path:
+    """Where ``path``'s content is now: its temporary file while an
+    :func:`all_or_nothing` block holds it back, else ``path``."""
+    for tmp, target in _BATCH or ():
+        if target == Path(path):
+            return Path(tmp)
+    return Path(path)
+
+
+@contextlib.contextmanager
+def all_or_nothing():
+    """Files written through :func:`atomic_path` inside the block are renamed into place
+    together at its end, or, if anything in it fails, none is (their temporary files are
+    removed): a command's outputs never mix with a half-finished set (a full disk left
+    ``table.md`` written and ``panel.png`` not, and then said "nothing was written")."""
+    global _BATCH
+    outer, _BATCH = _BATCH, []
+    batch = _BATCH
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in batch:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            PENDING.discard(tmp)
+        raise
+    finally:
+        _BATCH = outer
+    for tmp, path in batch:
+        os.replace(tmp, path)
         PENDING.discard(tmp)
 
 

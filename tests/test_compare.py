@@ -181,3 +181,44 @@ def test_render_warns_when_the_integrator_ignores_part_of_the_scene(tmp_path, ca
     assert cli.main(["render", FIRE, "-i", f"{integrator}", "--spp", "1", "--res", "4",
                      "-o", str(tmp_path / "f.exr")]) == 0
     assert f"warning: this integrator ignores the {part} of" in capsys.readouterr().err
+
+
+def test_compare_never_overwrites_files_it_did_not_write(equal_time, tmp_path, capsys):
+    """Issue 46: ``compare -o DIR`` into a folder of the user's overwrote their own
+    ``table.md`` / ``panel.png``. Refused before any rendering; a folder an earlier
+    compare wrote is rewritten."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "table.md").write_text("my notes")
+    rc = cli.main(["compare", SCENE, "-i", "path_rr", "--res", "8", "--spp", "2",
+                   "--passes", "1", "--cache", str(tmp_path / "c"), "-o", str(out), "-q"])
+    assert rc == 2
+    assert (f"-o/--output '{out}' holds table.md that compare did not write"
+            in capsys.readouterr().err)
+    assert (out / "table.md").read_text() == "my notes"
+    fresh = tmp_path / "fresh"
+    report.write_all(equal_time[0], fresh)
+    report.write_all(equal_time[0], fresh)        # its own files: rewritten
+    assert report.written_by_compare(fresh)
+
+
+def test_compare_writes_every_file_or_none(equal_time, tmp_path, monkeypatch):
+    """A write that fails half-way (a full disk) left table.md written and the rest not,
+    then said "nothing was written": now none of the set lands, and the message says so."""
+    from mitsuba_plugins import output
+    out = tmp_path / "out"
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(report, "plot_panel", full_disk)
+    with pytest.raises(OSError, match="No space left on device"):
+        report.write_all(equal_time[0], out)
+    assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
+    monkeypatch.undo()
+    with pytest.raises(output.OutputError, match="none of this command's files was written"):
+        with output.all_or_nothing():
+            output.write_text(tmp_path / "a.md", "a")
+            with output.atomic_path(tmp_path / "b.md") as tmp:
+                Path(tmp).write_text("half")
+                raise RuntimeError("disk full")
+    assert not (tmp_path / "a.md").exists() and not list(tmp_path.glob(".*tmp*"))

@@ -305,6 +305,7 @@ def check_options(args) -> None:
         output.check_folder_target(folder, option="-o/--output")
         output.check_targets([folder / name for name in rep.output_names(labels)],
                              option="-o/--output")
+        rep.check_not_foreign(folder, rep.output_names(labels))
         output.check_folder_target(args.cache, option="--cache")
     elif args.command == "reference":
         _int_range(args, "--passes", 1)

@@ -216,11 +216,36 @@ def write_all(report: Report, out: Path) -> dict:
     """Tables, images, ``curves.png``, ``panel.png`` and ``report.html`` in ``out``;
     returns their paths."""
     from mitsuba_plugins.tools import viewer
-    output.check_targets([out / name for name in output_names([r.integrator for r in report.rows])])
-    written = {"tables": write_tables(report, out), "images": write_images(report, out),
-               "curves": plot_curves(report, out / PLOTS[0]),
-               "panel": plot_panel(report, out / PLOTS[1])}
-    written["page"] = viewer.write_page(report, out / PAGE, COLUMNS, legend(report),
-                                        curves=written["curves"])
+    names = output_names([r.integrator for r in report.rows])
+    output.check_targets([out / name for name in names])
+    check_not_foreign(out, names)
+    with output.all_or_nothing():       # every file, or none
+        written = {"tables": write_tables(report, out), "images": write_images(report, out),
+                   "curves": plot_curves(report, out / PLOTS[0]),
+                   "panel": plot_panel(report, out / PLOTS[1])}
+        written["page"] = viewer.write_page(report, out / PAGE, COLUMNS, legend(report),
+                                            curves=output.staged(written["curves"]))
     return written
+
+
+def written_by_compare(folder: Path) -> bool:
+    """Whether ``folder`` holds the ``results.json`` of an earlier ``compare``."""
+    import json
+    try:
+        with open(Path(folder) / TABLES[2], encoding="utf-8") as f:
+            return "rel_mse_definition" in json.load(f)
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def check_not_foreign(folder, names) -> None:
+    """Refuse an output folder that holds files of these ``names`` which ``compare`` did
+    not write (a user's own ``table.md`` or ``panel.png`` was overwritten)."""
+    folder = Path(folder)
+    present = [n for n in names if (folder / n).exists()]
+    if present and not written_by_compare(folder):
+        raise output.OutputError(
+            f"-o/--output '{folder}' holds {', '.join(present[:4])}"
+            f"{' ...' if len(present) > 4 else ''} that compare did not write (no results.json "
+            "of an earlier compare there); choose a new or empty folder")
 
