@@ -8,7 +8,7 @@ from mitsuba_plugins.mis import HEURISTICS, MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
 from mitsuba_plugins.surface import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
                                      sample_emitter)
-from mitsuba_plugins.validity import SampleGuard, exclusive_render, refuse_gradients
+from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()
 
@@ -69,9 +69,6 @@ class DirectMIS(mi.SamplingIntegrator):
     """
 
     render_forward, render_backward = refuse_gradients("direct_mis", "prb")
-
-    NAME = "direct_mis"
-    render = exclusive_render      # one thread per scene
 
     ALLOWED = SAMPLING_INTEGRATOR_BASE + ("shading_samples", "emitter_samples", "bsdf_samples",
                                           "heuristic", "power_exponent", "emitter_selection")

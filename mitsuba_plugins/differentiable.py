@@ -10,7 +10,6 @@ import mitsuba as mi
 
 from mitsuba_plugins.replay import Replay
 from mitsuba_plugins.scene_media import SceneMedia
-from mitsuba_plugins.validity import one_thread
 from mitsuba_plugins.volumes import trace_volumes
 
 VARIANT = mi.variant()
@@ -104,9 +103,8 @@ def render_forward(integrator, scene, params, sensor=0, seed=0, spp=0):
     """Forward-mode derivative image (``RBIntegrator.render_forward``)."""
     check(integrator, scene)
     sensor = _sensor(scene, sensor)
-    with one_thread(scene, integrator.NAME):
-        return _common.RBIntegrator.render_forward(ReplayRender(integrator, sensor, seed),
-                                                   scene, params, sensor, seed, spp)
+    return _common.RBIntegrator.render_forward(ReplayRender(integrator, sensor, seed), scene,
+                                               params, sensor, seed, spp)
 
 
 def render_backward(integrator, scene, params, grad_in, sensor=0, seed=0, spp=0):
@@ -114,6 +112,5 @@ def render_backward(integrator, scene, params, grad_in, sensor=0, seed=0, spp=0)
     (``RBIntegrator.render_backward``)."""
     check(integrator, scene)
     sensor = _sensor(scene, sensor)
-    with one_thread(scene, integrator.NAME):
-        return _common.RBIntegrator.render_backward(ReplayRender(integrator, sensor, seed),
-                                                    scene, params, grad_in, sensor, seed, spp)
+    return _common.RBIntegrator.render_backward(ReplayRender(integrator, sensor, seed), scene,
+                                                params, grad_in, sensor, seed, spp)

@@ -14,7 +14,7 @@ from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
 from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission_mis,
                                      emitter_contribution, sample_emitter)
-from mitsuba_plugins.validity import SampleGuard, exclusive_render
+from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()
 
@@ -33,7 +33,6 @@ class PathIntegrator(mi.SamplingIntegrator):
     """
     NAME = "path"
     PARAMETERS: tuple = ()
-    render = exclusive_render      # one thread per scene
     #: Default cap of the throughput roulette's survival (``rr_max_survival``): Mitsuba's.
     RR_MAX_SURVIVAL = 0.95
 

@@ -9,51 +9,10 @@ way. :func:`take_invalid_samples` reads and resets a counter after a render.
 """
 from __future__ import annotations
 
-import contextlib
-import threading
-
 import drjit as dr
 import mitsuba as mi
 
 VARIANT = mi.variant()
-
-#: scene id -> (thread rendering it, nesting depth); guarded by _RENDERING_LOCK
-_RENDERING: dict = {}
-_RENDERING_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def one_thread(scene, plugin: str):
-    """Refuse, in one line, a render of ``scene`` while another thread renders it (two
-    threads rendering one scene hung at 100% CPU or gave different images); the same
-    thread may nest renders (Mitsuba's ``render`` calls back)."""
-    me = threading.get_ident()
-    key = id(scene)
-    with _RENDERING_LOCK:
-        owner, depth = _RENDERING.get(key, (me, 0))
-        if owner != me:
-            raise RuntimeError(
-                f"{plugin}: this scene is being rendered in another thread; one scene renders "
-                "in one thread at a time (put a lock around mi.render, or give each thread "
-                "its own scene and integrator)")
-        _RENDERING[key] = (me, depth + 1)
-    try:
-        yield
-    finally:
-        with _RENDERING_LOCK:
-            depth = _RENDERING[key][1] - 1
-            if depth:
-                _RENDERING[key] = (me, depth)
-            else:
-                del _RENDERING[key]
-
-
-def exclusive_render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-    """``render`` of our sampling integrators (``render = exclusive_render`` in the class:
-    nanobind classes take one base): Mitsuba's, inside :func:`one_thread`. ``self.NAME``
-    names the plugin in the message."""
-    with one_thread(scene, self.NAME):
-        return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
 
 
 def refuse_gradients(plugin: str, alternative: str) -> tuple:
