@@ -102,7 +102,7 @@ def test_cli_equal_time(tmp_path, capsys):
     (["--ref-spp", "8"], "--ref-spp must be >= 16"),
     (["--time-budget", "nan"], "--time-budget = nan is invalid"),
     (["--time-budget", "inf"], "--time-budget = inf is invalid"),   # would never end
-    (["--res", "0"], "--res = 0 is invalid; allowed: an integer >= 1"),
+    (["--res", "0"], "--res = 0 is invalid; allowed: an integer in [1, 16384]"),
     (["--seed", "-1"], "--seed = -1 is invalid; allowed: an integer in [0, 4294967295]"),
 ])
 def test_cli_rejects_bad_options(args, message, capsys, tmp_path):

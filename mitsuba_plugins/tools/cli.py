@@ -287,7 +287,7 @@ def check_options(args) -> None:
         _int_range(args, "--spp-per-pass", 1)
         _int_range(args, "--ref-spp", 1, MAX_SPP)
         if args.time_budget is None and args.spp_per_pass is None and args.passes and \
-                args.spp and args.spp % args.passes:
+                args.spp and args.spp >= args.passes and args.spp % args.passes:
             raise OptionError(f"--spp = {args.spp} is invalid; allowed: a multiple of "
                               f"--passes ({args.passes})")
         budget = args.time_budget
