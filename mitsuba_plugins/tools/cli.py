@@ -49,9 +49,20 @@ def render_target(args) -> Path:
     return Path(args.output or Path("out") / f"{Path(args.scene).stem}.exr")
 
 
+def warn_if_ignored(scene, integrator_type: str, scene_path) -> None:
+    """Say on stderr when the integrator leaves part of the scene out (a built-in on an
+    emissive medium, a surface integrator on media)."""
+    from mitsuba_plugins.tools.compare import ignores
+    missing = ignores(scene, integrator_type)
+    if missing:
+        print(f"mitsuba-plugins: warning: this integrator ignores the {missing} of "
+              f"{scene_path}; render it with volpath_delta or volpath_raymarch",
+              file=sys.stderr, flush=True)
+
+
 def cmd_render(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import ignores, parse_integrator, plugin_name
+    from mitsuba_plugins.tools.compare import parse_integrator, plugin_name
     from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
@@ -59,12 +70,8 @@ def cmd_render(args) -> int:
     scene = load_scene(args.scene, args.res)
     integrator = counted(mi.load_dict(parse_integrator(args.integrator)) if args.integrator
                          else scene.integrator())
-    missing = ignores(scene, plugin_name(integrator.inner if hasattr(integrator, "inner")
-                                         else integrator))
-    if missing:
-        print(f"mitsuba-plugins: warning: this integrator ignores the {missing} of "
-              f"{args.scene}; render it with volpath_delta or volpath_raymarch",
-              file=sys.stderr, flush=True)
+    warn_if_ignored(scene, plugin_name(integrator.inner if hasattr(integrator, "inner")
+                                       else integrator), args.scene)
     print(f"rendering {args.scene} ...", file=sys.stderr, flush=True)
     seconds, array, invalid = timed_pass(scene, integrator, args.spp or 0, args.seed)
     output.write_exr(out, array)
@@ -114,8 +121,9 @@ def cmd_reference(args) -> int:
     integrator = parse_integrator(args.integrator)
     # the scene and the integrator's parameters are checked here, once, before any
     # worker starts (a bad one raised in every task, each with Dask's traceback)
-    load_scene(args.scene, args.res)
+    scene = load_scene(args.scene, args.res)
     mi.load_dict(integrator)
+    warn_if_ignored(scene, integrator["type"], args.scene)
     info = reference(args.scene, integrator, args.spp, args.passes,
                      folder, res=args.res, seed=args.seed, workers=args.workers,
                      scheduler=args.scheduler, threads=args.threads, variant=args.variant,
