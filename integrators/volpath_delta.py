@@ -24,7 +24,7 @@ DEFAULT_FREE_FLIGHT = "delta"
 DEFAULT_SHADOW_ROULETTE = 0.2
 #: Largest threshold: below 1, so that an unattenuated ray is never played.
 MAX_SHADOW_ROULETTE = 0.999
-#: Chosen on benchmarks/results/gradients.md (efficiency of directional derivatives).
+#: Chosen on benchmarks/results/inverse.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
 
 
