@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from mitsuba_plugins.contract import medium_interaction
 from mitsuba_plugins.estimators import homogeneous_transmittance
@@ -137,18 +136,17 @@ class RayMarchingStrategy(VolumeStrategy):
                 f"{extent / MAX_STEPS_PER_MARCH:.3g} here (at most {MAX_STEPS_PER_MARCH:g} "
                 "steps per march)")
         if self.step_mode == "majorant" and media.heterogeneous:
-            # steps of step_optical_depth / sigma_maj: the densest cell sets the count
-            densest = max(float(np.max(t.march_grid.host_values, initial=0.0))
-                          for t in media.trackers.values())
-            steps = extent * densest / self.step_optical_depth
+            # steps of step_optical_depth / sigma_maj: the majorant's optical depth along a
+            # line of cells sets the count
+            depth = max(t.march_grid.line_optical_depth() for t in media.trackers.values())
+            steps = depth / self.step_optical_depth
             if steps > MAX_STEPS_PER_MARCH:
                 raise PluginParameterError(
                     f"volpath_raymarch: parameter 'step_optical_depth' = "
                     f"{self.step_optical_depth:g} would cut a march across this scene's media "
-                    f"(extent {extent:.3g}, majorant up to {densest:.3g}) into up to "
-                    f"{steps:.3g} steps; allowed: >= "
-                    f"{extent * densest / MAX_STEPS_PER_MARCH:.3g} here (at most "
-                    f"{MAX_STEPS_PER_MARCH:g} steps per march)")
+                    f"(majorant optical depth up to about {depth:.3g}) into about "
+                    f"{steps:.3g} steps; allowed: >= {depth / MAX_STEPS_PER_MARCH:.3g} here "
+                    f"(at most {MAX_STEPS_PER_MARCH:g} steps per march)")
         return Marcher(self.step_mode, self.step_size, self.step_optical_depth)
 
     def gathers_light(self, media: SceneMedia) -> bool:

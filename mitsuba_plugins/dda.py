@@ -83,8 +83,23 @@ class MajorantGrid:
                            to_world @ mi.ScalarPoint3f(0, 0, 0))
         self.cells_per_length = dr.opaque(mi.Float, 3 ** 0.5 * max(rx, ry, rz) /
                                           float(diagonal))
+        #: world length of a cell along x, y, z (host floats)
+        origin = to_world @ mi.ScalarPoint3f(0, 0, 0)
+        self.cell_lengths = tuple(
+            float(dr.norm(to_world @ mi.ScalarPoint3f(*np.eye(3)[k]) - origin)) / n
+            for k, n in enumerate((rx, ry, rz)))
 
     # -- queries -----------------------------------------------------------------
+    def line_optical_depth(self) -> float:
+        """The largest optical depth of the bounds along a line of cells parallel to an
+        axis, times sqrt(3) for oblique rays: what a march across the grid meets, about
+        (an estimate, not a bound; a uniform grid gives its bound times its diagonal)."""
+        if self.host_values.size == 0:
+            return 0.0
+        sums = [float(self.host_values.sum(axis=2 - k, dtype=np.float64).max()) * length
+                for k, length in enumerate(self.cell_lengths)]
+        return 3 ** 0.5 * max(sums)
+
     def empty_fraction(self) -> float:
         """Fraction of the box volume whose bound is exactly 0."""
         return float(np.mean(self.host_values == 0))

@@ -311,8 +311,14 @@ def _cube_scene(medium: dict, light: str) -> mi.Scene:
 
 
 def _homogeneous(**kw) -> dict:
-    return dict({"type": "homogeneous", "albedo": {"type": "rgb", "value": [0.5, 0.5, 0.5]},
-                 "sigma_t": {"type": "rgb", "value": [1.0, 1.0, 1.0]}, "scale": 0.8,
+    """As Mitsuba's tests: RGB values in RGB variants; elsewhere uniform spectra (an RGB
+    value there is a sigmoid polynomial's coefficients, which ``+ theta`` does not
+    perturb as a value)."""
+    if mi.is_rgb:
+        albedo, sigma_t = ({"type": "rgb", "value": [v] * 3} for v in (0.5, 1.0))
+    else:
+        albedo, sigma_t = 0.5, 1.0
+    return dict({"type": "homogeneous", "albedo": albedo, "sigma_t": sigma_t, "scale": 0.8,
                  "phase": {"type": "hg", "g": 0.3}}, **kw)
 
 

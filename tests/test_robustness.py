@@ -172,8 +172,9 @@ def test_tiny_step_optical_depth_is_refused_at_render_time(mode):
     with pytest.raises(Exception) as error:
         render(scene, {"type": "volpath_raymarch", "mode": mode, "step_mode": "majorant",
                        "step_optical_depth": 1e-9}, spp=1)
-    assert re.search(r"'step_optical_depth' = 1e-09 would cut a march .*majorant up to "
-                     r"[0-9.]+\).*allowed: >= [0-9.e-]+ here \(at most 100000 steps",
+    assert re.search(r"'step_optical_depth' = 1e-09 would cut a march .*majorant optical "
+                     r"depth up to about [0-9.]+\).*allowed: >= [0-9.e-]+ here \(at most "
+                     r"100000 steps",
                      cli.user_message(error.value)), cli.user_message(error.value)
     # the default renders
     assert render(scene, {"type": "volpath_raymarch", "mode": mode, "step_mode": "majorant"},
