@@ -151,7 +151,7 @@ def atomic_path(path):
             os.unlink(tmp)
         raise
     finally:
-        if batch is None:
+        if batch is None or all(t != tmp for t, _ in batch):   # else renamed with the batch
             PENDING.discard(tmp)
 
 

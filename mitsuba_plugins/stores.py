@@ -97,7 +97,7 @@ class DenseStore:
         builder, self._loaded = self._loaded, None
         if builder is None:       # after an edit: checked (and read) by changed()
             data, self._host = self._host, None
-            data = self.texture.tensor().numpy() if data is None else data
+            data = self.data.numpy() if data is None else data
             builder = new_builder(data.shape, self.values, multiplier, cells).add_all(data)
         return _built(builder, self.to_local)
 
@@ -176,7 +176,7 @@ class SparseStore:
                 f"{self.grid.nbytes / 2**20:.1f} MiB)")
 
 
-def keep_or_restore(name: str, value, previous, lo: float = 0.0) -> None:
+def keep_or_restore(name: str, value, previous, lo: float = 0.0) -> np.ndarray:
     """Check an edited grid parameter ``name`` (every value finite, >= ``lo``); where one
     is not, put ``previous`` back into it (``params`` then holds what renders) and raise
     naming the parameter and the allowed range. Returns the values read (numpy)."""
