@@ -18,7 +18,7 @@ import mitsuba as mi
 
 from mitsuba_plugins.contract import index_channel, medium_interaction
 from mitsuba_plugins.estimators import FreeFlight, NullCollisionRule
-from mitsuba_plugins.replay import attached, interval_optical_depth
+from mitsuba_plugins.replay import attached
 
 VARIANT = mi.variant()
 
@@ -100,16 +100,17 @@ class DeltaTracking(NullCollisionRule):
         return ReplayDeltaState(*state, mi.Spectrum(0.0))
 
     def travel(self, tracker, ray, t, state, seg, step, active):
-        # drt: the transmittance of the step, in front of all gathered after it
-        if self.replay is not None and self.replay.estimator == "drt":
-            moving = active & (step > 0)
-            tau = interval_optical_depth(self.replay, tracker, ray, t, step, moving)
-            state.grad += self.replay.transmittance(tau, self.remaining - state.L_e, moving)
+        # the gradient rule's part of the step, in front of all gathered after it
+        if self.replay is not None:
+            grad = self.replay.flight.travel(self.replay, tracker, ray, t, step,
+                                             self.remaining - state.L_e, active)
+            if grad is not None:
+                state.grad += grad
 
     def replay_collision(self, tracker, ray, t, sigma_maj, beta, state, collide, real):
         """The derivative of a tentative collision's weights: the light it gathers,
-        then the real collision's ``sigma_s`` (or, ``delta``, the null's ``sigma_n``)
-        in front of all gathered after it."""
+        then the real collision's ``sigma_s`` and what the gradient rule says of a null
+        one (``replay.flight``), in front of all gathered after it."""
         replay = self.replay
         props = attached(lambda: tracker.properties(medium_interaction(ray, t), collide))
         if self.emission:
@@ -117,9 +118,9 @@ class DeltaTracking(NullCollisionRule):
                 lambda: beta * (props.sigma_t - props.sigma_s) * props.Le / sigma_maj), collide)
         after = self.remaining - state.L_e
         state.grad += replay.factor(props.sigma_s, after, real)
-        if replay.estimator == "delta":
-            sigma_n = attached(lambda: dr.maximum(sigma_maj - props.sigma_t, 0.0))
-            state.grad += replay.factor(sigma_n, after, collide & ~real)
+        grad = replay.flight.null_collision(replay, sigma_maj, props, after, collide & ~real)
+        if grad is not None:
+            state.grad += grad
 
     def gather(self, state, props, rate, collide) -> None:
         """With ``emission``: the light of a tentative collision drawn at ``rate``,

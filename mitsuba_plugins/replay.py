@@ -41,8 +41,6 @@ from mitsuba_plugins.walk import walk
 
 VARIANT = mi.variant()
 
-#: Names of ``gradient_estimator`` (``volpath_delta``).
-GRADIENT_ESTIMATORS = ("drt", "delta")
 
 #: Propagation flags of every term. Terms share parts of the graph (one lookup gives
 #: ``sigma_s`` and ``sigma_n``; every lookup shares the grid's tensor and ``scale``),
@@ -85,6 +83,8 @@ class Replay:
 
     def __init__(self, mode, dL, L_primal, seed, estimator: str):
         self.mode, self.dL, self.L_primal, self.estimator = mode, dL, L_primal, estimator
+        #: the free flights' rule (:data:`GRADIENT_ESTIMATORS`)
+        self.flight = GRADIENT_ESTIMATORS[estimator]()
         lane = dr.arange(mi.UInt32, dr.width(L_primal))
         # opaque: a literal seed would make every render with a new seed a new kernel
         seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
@@ -216,6 +216,53 @@ def interval_optical_depth(replay: Replay, tracker, ray: mi.Ray3f, t: mi.Float,
     def tau():
         return tracker.sigma_t(medium_interaction(ray, s), active) * step
     return attached(tau)
+
+
+class FlightGradient:
+    """How a replayed free flight through a heterogeneous medium propagates the
+    derivative of its transmittance: a rule of ``volpath_delta``'s
+    ``gradient_estimator`` (:data:`GRADIENT_ESTIMATORS`), as the transmittance and
+    free-flight rules are. A hook returns the tangent it adds, or None where the rule
+    adds nothing there (then the kernel holds no code for it)."""
+    name = ""
+
+    def travel(self, replay: Replay, tracker, ray: mi.Ray3f, t: mi.Float, step: mi.Float,
+               after: mi.Spectrum, active):
+        """A step ``[t, t + step]`` of the flight, in front of ``after``."""
+        return None
+
+    def null_collision(self, replay: Replay, sigma_maj: mi.Float, props, after: mi.Spectrum,
+                       active):
+        """A null collision (``props``: the medium there, attached), in front of
+        ``after``."""
+        return None
+
+
+class DifferentialRatioTracking(FlightGradient):
+    r"""``drt``: each step's transmittance :math:`\exp(-\int\sigma_t)` differentiated
+    through an unbiased estimate of its optical depth (:func:`interval_optical_depth`);
+    null collisions carry no weight to differentiate (Nimier-David et al. 2022)."""
+    name = "drt"
+
+    def travel(self, replay, tracker, ray, t, step, after, active):
+        moving = active & (step > 0)
+        tau = interval_optical_depth(replay, tracker, ray, t, step, moving)
+        return replay.transmittance(tau, after, moving)
+
+
+class DeltaTrackingGradient(FlightGradient):
+    r"""``delta``: the delta-tracking estimator differentiated as ``prbvolpath`` does: a
+    null collision weighs :math:`\sigma_n(\theta) / \sigma_n`."""
+    name = "delta"
+
+    def null_collision(self, replay, sigma_maj, props, after, active):
+        sigma_n = attached(lambda: dr.maximum(sigma_maj - props.sigma_t, 0.0))
+        return replay.factor(sigma_n, after, active)
+
+
+#: ``gradient_estimator`` (``volpath_delta``): name -> rule
+GRADIENT_ESTIMATORS = {rule.name: rule for rule in (DifferentialRatioTracking,
+                                                    DeltaTrackingGradient)}
 
 
 def replay_homogeneous(replay: Replay, medium: mi.MediumPtr, ray: mi.Ray3f, distance,
