@@ -1,7 +1,7 @@
 """Validation on Mitsuba's own participating-media render tests, in any variant.
 
 Mitsuba's regression scenes (the ``mitsuba-data`` repository, folder
-``tests/scenes/participating_media``; not shipped here: clone it and pass ``--data``) are
+``<mitsuba-data>/tests/scenes/participating_media``; not shipped here: clone it and pass ``--data``) are
 rendered with the Mitsuba integrator each scene names (the reference: ``volpath``, or
 ``volpathmis`` for the two ``*_volpathmis`` scenes of strongly chromatic extinction, where
 ``volpath``'s one-channel distance sampling is heavy-tailed; docs/validation.md) and with
