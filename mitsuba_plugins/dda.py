@@ -83,6 +83,7 @@ class MajorantGrid:
                            to_world @ mi.ScalarPoint3f(0, 0, 0))
         self.cells_per_length = dr.opaque(mi.Float, 3 ** 0.5 * max(rx, ry, rz) /
                                           float(diagonal))
+        self._line_depth = None     # line_optical_depth, once asked
         #: world length of a cell along x, y, z (host floats)
         origin = to_world @ mi.ScalarPoint3f(0, 0, 0)
         self.cell_lengths = tuple(
@@ -94,11 +95,11 @@ class MajorantGrid:
         """The largest optical depth of the bounds along a line of cells parallel to an
         axis, times sqrt(3) for oblique rays: what a march across the grid meets, about
         (an estimate, not a bound; a uniform grid gives its bound times its diagonal)."""
-        if self.host_values.size == 0:
-            return 0.0
-        sums = [float(self.host_values.sum(axis=2 - k, dtype=np.float64).max()) * length
-                for k, length in enumerate(self.cell_lengths)]
-        return 3 ** 0.5 * max(sums)
+        if self._line_depth is None:      # the bounds never change: summed once
+            sums = [float(self.host_values.sum(axis=2 - k, dtype=np.float64).max(initial=0.0))
+                    * length for k, length in enumerate(self.cell_lengths)]
+            self._line_depth = 3 ** 0.5 * max(sums)
+        return self._line_depth
 
     def empty_fraction(self) -> float:
         """Fraction of the box volume whose bound is exactly 0."""

@@ -273,7 +273,7 @@ def _check_no_grid_lost(target, name: str) -> None:
     except GridFileError:
         return                  # not an OpenVDB file: no grid to lose
     lost = [a for a in held if a != name]
-    if lost or len(held) > 1:
+    if lost:
         raise GridFileError(
             f"OUT '{os.fspath(target)}' holds the grid(s) {', '.join(map(repr, held))}; the "
             f"output holds grid {name!r} alone, so the others would be lost; write to "

@@ -119,7 +119,8 @@ class DenseStore:
                 f"{tuple(previous.shape)} to {shape}; allowed: the loaded shape (the "
                 "previous values are kept)")
         if not self.values.converted:   # exposed through traverse: may have changed
-            self._host = keep_or_restore("data", self.data, previous)
+            self._host = checked_edit("data", self.data.numpy(), lambda: mi.set_property(
+                self.data, mi.TensorXf(previous)))
         self.texture.set_tensor(self.data)
 
     def describe(self) -> str:
@@ -176,16 +177,15 @@ class SparseStore:
                 f"{self.grid.nbytes / 2**20:.1f} MiB)")
 
 
-def keep_or_restore(name: str, value, previous, lo: float = 0.0) -> np.ndarray:
-    """Check an edited grid parameter ``name`` (every value finite, >= ``lo``); where one
-    is not, put ``previous`` back into it (``params`` then holds what renders) and raise
-    naming the parameter and the allowed range. Returns the values read (numpy)."""
-    values = np.asarray(value.numpy() if hasattr(value, "numpy") else value)
+def checked_edit(name: str, values: np.ndarray, restore, lo: float = 0.0) -> np.ndarray:
+    """``values`` of an edited grid parameter ``name``, every one finite and >= ``lo``;
+    where one is not, ``restore()`` puts the previous values back (``params`` then holds
+    what renders) and the error names the parameter and the allowed range."""
     bad = int(np.count_nonzero(~np.isfinite(values)))
     low = int(np.count_nonzero(values < lo)) if not bad else 0
     if not (bad or low):
         return values
-    mi.set_property(value, type(value)(previous))
+    restore()
     what = f"{bad} non-finite value(s) (NaN or Inf)" if bad else \
         f"{low} value(s) below {lo:g} (smallest {float(values.min()):g})"
     raise PluginParameterError(
@@ -205,13 +205,12 @@ def synchronize(grid, name: str, keys) -> bool:
         grid.synchronize()
     except ValueError as error:
         raise PluginParameterError(f"grid_medium: parameter '{name}' {error}") from None
-    try:
-        keep_or_restore(name, grid.pool, previous)
-    except PluginParameterError:
+
+    def restore():
         grid.pool = previous
         tensor = grid.bricks()
         mi.set_property(tensor, mi.TensorXf(previous, shape=tuple(tensor.shape)))
-        raise
+    checked_edit(name, grid.pool.numpy(), restore)
     return True
 
 
