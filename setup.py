@@ -1,5 +1,5 @@
-"""The optional compiled part: mitsuba_plugins._openvdb_bricks, a leaf-level .vdb reader
-against Debian's libopenvdb-dev (mitsuba_plugins/_openvdb_bricks.cpp). Everything else is
+"""The optional compiled part: mitsuba_plugins.grids._openvdb_bricks, a leaf-level .vdb reader
+against Debian's libopenvdb-dev (mitsuba_plugins/grids/_openvdb_bricks.cpp). Everything else is
 declared in pyproject.toml. Without OpenVDB's headers the build of this one module fails
 quietly (``optional``) and .vdb files are read by the pyopenvdb worker process instead."""
 from setuptools import Extension, setup
@@ -11,7 +11,7 @@ def _extension() -> list:
     except ImportError:          # built without build isolation and no pybind11: skip
         return []
     return [Extension(
-        "mitsuba_plugins._openvdb_bricks", ["mitsuba_plugins/_openvdb_bricks.cpp"],
+        "mitsuba_plugins.grids._openvdb_bricks", ["mitsuba_plugins/grids/_openvdb_bricks.cpp"],
         include_dirs=[pybind11.get_include()], libraries=["openvdb", "tbb"],
         extra_compile_args=["-std=c++17", "-O2"], language="c++", optional=True)]
 

@@ -49,7 +49,7 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 VARIANT = default_variant()
 mi.set_variant(VARIANT)
 from mitsuba_plugins import instrument, output  # noqa: E402
-from mitsuba_plugins.majorant import DEFAULT_RESOLUTION  # noqa: E402
+from mitsuba_plugins.tracking.majorant import DEFAULT_RESOLUTION  # noqa: E402
 from mitsuba_plugins.tools import stats  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

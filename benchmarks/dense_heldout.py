@@ -39,7 +39,8 @@ import numpy as np
 
 import dense  # noqa: E402  (benchmarks/ is on sys.path; sets the variant)
 from common import device_model  # noqa: E402
-from mitsuba_plugins import gridio, output  # noqa: E402
+from mitsuba_plugins import output
+from mitsuba_plugins.grids import gridio
 
 ROOT = Path(__file__).resolve().parents[1]
 LIGHTS = ("area", "point", "spot", "sun", "env", "inside")

@@ -84,7 +84,7 @@ def _run_child(kind, path):
 
 
 def bench_memory(workdir: Path):
-    from mitsuba_plugins.gridio import write_vol
+    from mitsuba_plugins.grids.gridio import write_vol
     rng = np.random.default_rng(0)
     big = workdir / "big.vol"
     write_vol(big, rng.random((MEM_RES,) * 3, dtype=np.float32))
@@ -102,7 +102,7 @@ def bench_memory(workdir: Path):
 
 
 def bench_build(runs=5):
-    from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
+    from mitsuba_plugins.grids.bounds import MajorantBuilder, resolution_for
     data = np.random.default_rng(1).random((MEM_RES,) * 3 + (1,), dtype=np.float32)
     times = []
     for _ in range(runs):

@@ -128,7 +128,7 @@ def ring_sensors(n: int, res: int, radius: float = 4.0):
 
 def resampled_smoke(resolution: int) -> np.ndarray:
     from scipy.ndimage import zoom
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     from helpers import SMOKE
     data = gridio.read_grid(SMOKE)[0][..., :1]
     factor = resolution / data.shape[0]
@@ -187,7 +187,7 @@ def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid
     offsets the gradient renders' seeds."""
     import tempfile
     from helpers import media_scene
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     true = grid
     tmp = tempfile.mkdtemp()
     path = os.path.join(tmp, "truth.vol")

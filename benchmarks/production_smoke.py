@@ -78,8 +78,8 @@ def plume(seed: int = 5) -> np.ndarray:
 
 
 def write_files(folder: Path) -> dict:
-    from mitsuba_plugins import gridio
-    from mitsuba_plugins.vdb import openvdb_python
+    from mitsuba_plugins.grids import gridio
+    from mitsuba_plugins.grids.vdb_openvdb import openvdb_python
     density = plume()
     npy, vdb_path = folder / "plume.npy", folder / "plume.vdb"
     np.save(npy, density)

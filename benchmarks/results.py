@@ -98,7 +98,8 @@ def gallery_cell(name: str, specs: list, reference, budget: float, ref_seconds: 
     import mitsuba as mi
     if variant and mi.variant() != variant:
         mi.set_variant(variant)
-    from mitsuba_plugins.tools.compare import compare, parse_integrator, reference_for
+    from mitsuba_plugins.tools.compare import compare
+    from mitsuba_plugins.tools.integrator_specs import parse_integrator, reference_for
     from mitsuba_plugins.tools.scenes import load_scene
     path = str(ROOT / "scenes" / f"{name}.xml")
     integrators = [parse_integrator(s) for s in specs]
@@ -277,7 +278,7 @@ def summary_table(results) -> str:
 
 
 def _twin_name(label: str) -> str:
-    from mitsuba_plugins.tools.compare import BUILTIN
+    from mitsuba_plugins.tools.integrator_specs import BUILTIN
     return BUILTIN[label.split(":")[0]]
 
 

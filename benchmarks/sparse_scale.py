@@ -52,7 +52,7 @@ print(g.activeVoxelCount())
 
 
 def generate(n: int, folder: Path) -> tuple:
-    from mitsuba_plugins.vdb import openvdb_python
+    from mitsuba_plugins.grids.vdb_openvdb import openvdb_python
     path = folder / f"cloud{n}.vdb"
     meta = path.with_suffix(".json")
     if path.exists() and meta.exists():
@@ -187,7 +187,8 @@ def main() -> int:
         return 0
     import mitsuba_plugins  # noqa: F401
     import mitsuba as mi
-    from mitsuba_plugins import gridio, output
+    from mitsuba_plugins import output
+    from mitsuba_plugins.grids import gridio
     from mitsuba_plugins.registry import default_variant
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from common import device_model

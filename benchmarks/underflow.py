@@ -46,7 +46,7 @@ def T():
 def write_cloud(n: int, path: Path) -> tuple:
     """The cloud's active box as a .vol (values normalised to a maximum of 1); returns the
     box's world corners (the cube [-1, 1]^3 holds the whole n^3 index box)."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     lo, hi = extent(n)
     data = np.zeros((hi - lo,) * 3, np.float32)
     for k, d in cloud_slices(n):

@@ -40,7 +40,9 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
 mi.set_variant(VARIANT)
-from mitsuba_plugins import contract, estimators, instrument, output
+from mitsuba_plugins import instrument, output
+from mitsuba_plugins.tracking import transmittance
+from mitsuba_plugins.tracking import trackers
 from mitsuba_plugins.tools import stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -156,7 +158,7 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
     """Each transmittance estimator on one segment through a grid: mean, exp(-tau),
     variance and time per 2^20 estimates (compiled first)."""
     medium = mi.load_dict(grid_medium(path, 5.0))
-    tracker = contract.tracker_for(medium)
+    tracker = trackers.tracker_for(medium)
     o, d = mi.Point3f(-1.2, -0.3, -0.9), dr.normalize(mi.Vector3f(1.0, 0.4, 0.6))
     ray = mi.Ray3f(dr.zeros(mi.Point3f, n) + o, dr.zeros(mi.Vector3f, n) + d)
     steps, length = 100000, 4.0
@@ -167,13 +169,13 @@ def estimators_alone(path: str, n: int = 1 << 20) -> dict:
     inside = np.all((p >= -1) & (p <= 1), axis=0)
     tau = float((np.array(medium.eval_sigma_t(mei))[0] * inside).sum() * length / steps)
     out = {"exp_minus_tau": float(np.exp(-tau)), "tau": tau}
-    for method in estimators.TRANSMITTANCE_ESTIMATORS:
+    for method in transmittance.TRANSMITTANCE_ESTIMATORS:
         times = []
         for seed in range(4):
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(seed, n)
             t0 = time.perf_counter()
-            T = estimators.TRANSMITTANCE_ESTIMATORS[method].transmittance(
+            T = transmittance.TRANSMITTANCE_ESTIMATORS[method].transmittance(
                 tracker, ray, mi.Float(length), sampler, mi.Bool(True))
             dr.eval(T)
             dr.sync_thread()
@@ -247,17 +249,17 @@ def markdown(result: dict) -> str:
             f"**{r['efficiency_ratio']:.2f}x** | >= {target}x | "
             f"{'yes' if r['efficiency_ratio'] >= target else 'NO'} |")
     lines += ["", "## Shadow-ray transmittance estimators in the integrator (efficiency vs volpath)",
-              "", "| scene | " + " | ".join(estimators.TRANSMITTANCE_ESTIMATORS) + " |",
-              "|---|" + "---|" * len(estimators.TRANSMITTANCE_ESTIMATORS)]
+              "", "| scene | " + " | ".join(transmittance.TRANSMITTANCE_ESTIMATORS) + " |",
+              "|---|" + "---|" * len(transmittance.TRANSMITTANCE_ESTIMATORS)]
     for name, per in result["estimators_in_integrator"].items():
         lines.append(f"| {name} | " + " | ".join(f"{per[m]['efficiency_ratio']:.2f}x"
-                                              for m in estimators.TRANSMITTANCE_ESTIMATORS) + " |")
+                                              for m in transmittance.TRANSMITTANCE_ESTIMATORS) + " |")
     lines += ["", "## Transmittance estimators alone (one segment, 2^20 estimates)", ""]
     for name, r in result["estimators_alone"].items():
         lines += [f"{name}: tau = {r['tau']:.3f}, exp(-tau) = {r['exp_minus_tau']:.5f}", "",
                   "| estimator | mean +- se | variance | time (s) | variance x time |",
                   "|---|---|---|---|---|"]
-        for m in estimators.TRANSMITTANCE_ESTIMATORS:
+        for m in transmittance.TRANSMITTANCE_ESTIMATORS:
             e = r[m]
             lines.append(f"| {m} | {e['mean']:.5f} +- {e['se']:.5f} | {e['variance']:.3e} | "
                          f"{e['seconds']:.4f} | {e['variance'] * e['seconds']:.3e} |")
@@ -327,7 +329,7 @@ def main() -> None:
                 result["estimators_in_integrator"][name] = {
                     m: equal_time(scene, {"type": "volpath_delta", "max_depth": MAX_DEPTH,
                                           "transmittance": m}, builtin, args.spp, args.runs, ref)
-                    for m in estimators.TRANSMITTANCE_ESTIMATORS}
+                    for m in transmittance.TRANSMITTANCE_ESTIMATORS}
         np.save(tmp / "sparse_like.npy", contrast_field(50.0))
         np.save(tmp / "dense.npy", smooth_field())
         result["estimators_alone"] = {

@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from mitsuba_plugins.mis import HEURISTICS, MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
-from mitsuba_plugins.surface import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
+from mitsuba_plugins.path_vertex import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
                                      sample_emitter)
 from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 

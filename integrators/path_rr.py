@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins.paths import PathIntegrator
-from mitsuba_plugins.surface import EMITTER_SELECTIONS, RR_RULES, RussianRoulette
+from mitsuba_plugins.path_loop import PathIntegrator
+from mitsuba_plugins.path_vertex import EMITTER_SELECTIONS, RR_RULES, RussianRoulette
 from mitsuba_plugins.validity import refuse_gradients
 
 VARIANT = mi.variant()

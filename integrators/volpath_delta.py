@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins.estimators import TRANSMITTANCE_ESTIMATORS
-from mitsuba_plugins.flights import FREE_FLIGHTS
+from mitsuba_plugins.tracking.transmittance import TRANSMITTANCE_ESTIMATORS
+from mitsuba_plugins.tracking.free_flights import FREE_FLIGHTS
 from mitsuba_plugins.params import PluginParameterError
-from mitsuba_plugins.scene_media import SceneMedia
+from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins import differentiable
-from mitsuba_plugins.replay import GRADIENT_ESTIMATORS
-from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
-from mitsuba_plugins.walk import walk
+from mitsuba_plugins.tracking.replay import GRADIENT_ESTIMATORS
+from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
+from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()
 
@@ -99,7 +99,7 @@ class VolpathDelta(VolumetricIntegrator):
     * heterogeneous media: delta tracking against the majorant grid of ``grid_medium``
       (the global majorant for other media), null-scattering formulation with spectral
       MIS over the hero channel for chromatic extinction (Miller, Georgiev and Jarosz
-      2019); see :class:`mitsuba_plugins.flights.DeltaTracking`;
+      2019); see :class:`mitsuba_plugins.tracking.free_flights.DeltaTracking`;
     * emissive ``grid_medium``: :math:`\sigma_a L_e` collected at tentative collisions;
     * Russian roulette (Mitsuba's throughput rule, survival capped at ``rr_max_survival``)
       once per real event, never at null collisions; MIS (power heuristic) between emitter and phase/BSDF sampling using
@@ -170,7 +170,7 @@ class VolpathDelta(VolumetricIntegrator):
 class TrackingStrategy(VolumeStrategy):
     """The medium phase of ``volpath_delta``: analytic flights in homogeneous media (the
     base's), the ``flight`` rule (an entry of
-    :data:`~mitsuba_plugins.flights.FREE_FLIGHTS`) in heterogeneous ones, shadow rays
+    :data:`~mitsuba_plugins.tracking.free_flights.FREE_FLIGHTS`) in heterogeneous ones, shadow rays
     by ``estimator``."""
 
     def __init__(self, flight, estimator):

@@ -5,16 +5,17 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import medium_interaction
-from mitsuba_plugins.estimators import homogeneous_transmittance
-from mitsuba_plugins.marching import (STEP_MODES, Marcher, MarchedFlight, MarchedSingle,
+from mitsuba_plugins.tracking.trackers import medium_interaction
+from mitsuba_plugins.tracking.homogeneous import homogeneous_transmittance
+from mitsuba_plugins.tracking.marching import (STEP_MODES, Marcher, MarchedFlight, MarchedSingle,
                                       sample_cell_point)
 from mitsuba_plugins.params import PluginParameterError
-from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
+from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
 from mitsuba_plugins.validity import refuse_gradients
-from mitsuba_plugins.estimators import FreeFlight
-from mitsuba_plugins.volumes import VolumeStrategy, VolumetricIntegrator
-from mitsuba_plugins.walk import walk
+from mitsuba_plugins.tracking.homogeneous import FreeFlight
+from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
+from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()
 
@@ -72,7 +73,7 @@ class VolpathRaymarch(VolumetricIntegrator):
     along each ray by the piecewise-constant medium whose value in each cell is the
     extinction (and albedo, emission) at the cell's midpoint; the cell grid is
     jittered per ray. Light transport in that medium is then computed *exactly*
-    (:mod:`mitsuba_plugins.marching`), so the bias is the midpoint-quadrature error
+    (:mod:`mitsuba_plugins.tracking.marching`), so the bias is the midpoint-quadrature error
     of the optical depth alone, and it vanishes as the step shrinks
     (``benchmarks/results/volpath_raymarch.md`` measures it per step size). Homogeneous
     media are never marched: their transmittance is analytic, as in ``volpath_delta``.

@@ -1,20 +1,26 @@
 """Heterogeneous grid medium with a majorant grid; a drop-in for Mitsuba's ``heterogeneous``.
 
 The plugin: its parameters and Mitsuba's medium interface. Where the values live is a
-store (:mod:`mitsuba_plugins.stores`), how a grid is placed :mod:`mitsuba_plugins.placement`,
-its majorants :func:`mitsuba_plugins.majorant.derive`, RGB in other variants
-:mod:`mitsuba_plugins.spectra`.
+store (:mod:`mitsuba_plugins.grids.stores`), how a grid is placed :mod:`mitsuba_plugins.grids.placement`,
+its majorants :func:`mitsuba_plugins.tracking.majorant.derive`, RGB in other variants
+:mod:`mitsuba_plugins.grids.spectra`.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from mitsuba_plugins import blackbody, gridio, majorant, placement, stores
-from mitsuba_plugins.dda import ray_box
+from mitsuba_plugins.tracking import majorant
+from mitsuba_plugins.grids import placement
+from mitsuba_plugins.grids import stores
+from mitsuba_plugins.grids import gridio
+from mitsuba_plugins.grids import side_grids
+from mitsuba_plugins.grids.side_grids import SideGrids
+from mitsuba_plugins.grids.value_checks import check_float32, checked_factors
+from mitsuba_plugins.grids import nested_volume
+from mitsuba_plugins.tracking.majorant_grid import ray_box
 from mitsuba_plugins.params import Params, PluginParameterError, floats
-from mitsuba_plugins.spectra import Multiplier
+from mitsuba_plugins.grids.spectra import Multiplier
 
 VARIANT = mi.variant()
 
@@ -33,7 +39,7 @@ class GridMedium(mi.Medium):
        - Density grid: Mitsuba's binary ``.vol`` (1 or 3 channels), a float ``.npy`` of
          shape ``(Z, Y, X)`` or ``(Z, Y, X, C)``, or an OpenVDB ``.vdb`` (float, half or
          vec3s grid; read through Debian's ``python3-openvdb``, see
-         :mod:`mitsuba_plugins.vdb`). Without it, ``sigma_t`` is the extinction itself,
+         :mod:`mitsuba_plugins.grids.vdb_openvdb`). Without it, ``sigma_t`` is the extinction itself,
          as in ``heterogeneous``.
      * - grid
        - |string|
@@ -72,7 +78,7 @@ class GridMedium(mi.Medium):
        - Fire: a float grid of the same ``.vdb`` file (e.g. ``temperature``) whose
          temperature :math:`T = (v - o)\,s` makes the emitted radiance ``emission`` x
          the blackbody spectrum normalised to a peak of 1 (pbrt-v4's ``nanovdb`` rule;
-         0 at or below 100 K; :mod:`mitsuba_plugins.blackbody`: linear sRGB in RGB
+         0 at or below 100 K; :mod:`mitsuba_plugins.grids.blackbody`: linear sRGB in RGB
          variants, clamped at 0, Planck's law at the path's wavelengths in spectral
          ones, where ``emission`` is then a plain factor, not an illuminant: spectral and
          RGB renders agree). ``emission`` defaults to 1; not with ``emission_grid``.
@@ -130,24 +136,24 @@ class GridMedium(mi.Medium):
     :math:`\sigma_s = \alpha\sigma_t`. ``get_majorant`` returns one gray global majorant
     :math:`\max_c \max_x \sigma_{t,c}(x)`: Mitsuba's ``volpath`` samples distances with
     it and stays unbiased with chromatic extinction. :attr:`majorant_grid` holds
-    per-cell bounds and a DDA (:mod:`mitsuba_plugins.majorant`) for our integrators.
+    per-cell bounds and a DDA (:mod:`mitsuba_plugins.tracking.majorant`) for our integrators.
     With a nested ``sigma_t`` volume and no ``filename`` it renders exactly what
     ``heterogeneous`` renders.
 
     The ``filename`` grid is streamed from disk in slabs into one device buffer: peak
     memory is about one copy of the raw grid (``gridvolume`` holds two), or, stored
-    sparse, about the brick pool (:mod:`mitsuba_plugins.bricks`).
+    sparse, about the brick pool (:mod:`mitsuba_plugins.grids.bricks`).
 
     ``mi.traverse`` exposes ``scale``, ``sigma_t`` (the multiplier), ``albedo``,
     ``emission`` and the phase function's parameters; with dense storage also ``data``,
     the grid tensor (same shape; the majorants are rebuilt on update), with sparse storage
     ``bricks``, the brick pool (which bricks exist is fixed:
-    :mod:`mitsuba_plugins.sparse`), and with ``emission_grid`` its ``emission_bricks``.
+    :mod:`mitsuba_plugins.grids.sparse`), and with ``emission_grid`` its ``emission_bricks``.
     All are differentiable with ``volpath_delta`` (``sigma_t`` in RGB variants only;
     ``data`` and ``albedo`` also with ``prbvolpath``).
     """
 
-    #: implements mitsuba_plugins.contract.TrackedMedium (majorant_grid, refinement,
+    #: implements mitsuba_plugins.tracking.medium_protocol.TrackedMedium (majorant_grid, refinement,
     #: eval_sigma_t, eval_albedo, get_radiance, has_emission, is_chromatic, bbox)
     PROVIDES_TRACKING = True
 
@@ -162,24 +168,16 @@ class GridMedium(mi.Medium):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         p = Params(props, "grid_medium", self.ALLOWED, objects=(mi.PhaseFunction,))
-        scale = p.float("scale", 1.0, lo=0.0)
-        with np.errstate(over="ignore"):   # an overflow to inf is what is refused here
-            scale_f32 = np.float32(scale)
-        if not np.isfinite(scale_f32):
-            raise PluginParameterError(
-                f"grid_medium: parameter 'scale' = {scale:g} is invalid; allowed: a finite "
-                "number >= 0 that float32 holds (at most 3.4e38)")
+        scale = check_float32("scale", p.float("scale", 1.0, lo=0.0))
         # 1 when only an albedo_grid gives it
         self.albedo = p.volume("albedo", 1.0 if p.has("albedo_grid") else 0.75, hi=1.0)
-        stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
+        nested_volume.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
         # with a temperature grid, emission scales Planck's spectrum itself: in spectral
         # variants a plain multiplier, not an illuminant (whose d65 shape would tint it)
         self.emission = p.volume("emission", None, illuminant=not p.has("temperature_grid")) \
             if p.has("emission") else None
-        self.emission_grid = None   # (SparseGrid, GridValues, to_local) of emission_grid
-        #: (SparseGrid, to_local, offset, scale) of temperature_grid
-        self.temperature = None
-        self.albedo_grid = None     # (SparseGrid, GridValues, to_local) of albedo_grid
+        #: emission_grid, temperature_grid, albedo_grid of a .vdb
+        self.side = SideGrids()
         self.cells = p.int("majorant_resolution", majorant.DEFAULT_RESOLUTION, lo=1, hi=1024)
         #: not given: coarsen the bounds per grid (majorant.auto_resolution)
         self.auto_cells = not p.has("majorant_resolution")
@@ -188,16 +186,8 @@ class GridMedium(mi.Medium):
         if p.has("filename"):
             self._load_file(p)
         else:
-            given = [name for name in self.FILE_ONLY if p.has(name)]
-            if given:
-                raise PluginParameterError(
-                    f"grid_medium: parameter '{given[0]}' applies to a 'filename' grid; with "
-                    "a nested sigma_t volume set it on the volume (e.g. gridvolume's "
-                    "'filter_type', 'to_world', 'use_grid_bbox')")
-            volume = p.volume("sigma_t", 1.0)
-            stores.check_volume_range("grid_medium", "sigma_t", volume, 0.0, None)
-            self.store = stores.VolumeStore(volume)
-            self.bbox = volume.bbox()
+            self.store = nested_volume.VolumeStore.from_params(p, self.FILE_ONLY)
+            self.bbox = self.store.volume.bbox()
             self.sigma_t_factor = mi.Color3f(1.0)
             self.multiplier = Multiplier(1.0)
             self._voxels = None  # a nested volume's lookups are Mitsuba's own
@@ -221,7 +211,7 @@ class GridMedium(mi.Medium):
         channels and the ``sigma_t`` factor, again after every parameter change: an edit
         that made a gray factor chromatic once left both false (silently wrong)."""
         if self.store.kind == "volume":
-            self.channels = stores.volume_channels(self.store.volume)
+            self.channels = nested_volume.volume_channels(self.store.volume)
         self.is_chromatic = self.channels == 3 or len(set(floats(self.sigma_t_factor))) > 1
         self.m_has_spectral_extinction = self.is_chromatic \
             if self._spectral_extinction is None else self._spectral_extinction
@@ -236,35 +226,19 @@ class GridMedium(mi.Medium):
         if p.has("to_world"):
             placement.check_invertible(p.props["to_world"])
         is_vdb = self.filename.lower().endswith(".vdb")
-        for name in ("grid", "emission_grid", "temperature_grid", "albedo_grid"):
+        for name in ("grid", *side_grids.NAMES):
             if p.has(name) and not is_vdb:
                 raise PluginParameterError(
                     f"grid_medium: parameter '{name}' selects a grid of a .vdb file; "
                     f"'{self.filename}' is not one")
-        if p.has("emission_grid"):
-            if self.emission is None:
-                self.emission = p.volume("emission", 1.0, illuminant=True)
-            self.emission_grid = stores.load_side_grid(self.filename,
-                                                       p.props["emission_grid"], to_world)
-        self._load_temperature(p, to_world)
-        if p.has("albedo_grid"):
-            self.albedo_grid = stores.load_side_grid(self.filename, p.props["albedo_grid"],
-                                                     to_world, "albedo_grid")
-            self._check_albedo_grid()
+        self.emission = self.side.load(p, self.filename, to_world, self.emission)
+        self.side.check_albedo(self.albedo)
         storage = p.choice("storage", "auto" if is_vdb else "dense", stores.STORAGES)
         self.sigma_t_factor = mi.Color3f(factor)
         self.multiplier = Multiplier(factor)
         header = gridio.read_header(self.filename, p.props["grid"] if p.has("grid") else "density")
-        if header.index_to_world is not None:
-            to_world = placement.vdb_to_world(header, to_world)
-        to_local = to_world.inverse()
-        if p.bool("use_grid_bbox", False):
-            if header.bbox is None:
-                raise PluginParameterError(
-                    f"grid_medium: parameter 'use_grid_bbox' needs a .vol file (with a "
-                    f"bounding box in its header); '{self.filename}' has none")
-            lo, hi = (np.asarray(v, dtype=np.float32) for v in header.bbox)
-            to_local = mi.ScalarTransform4f().scale(1.0 / (hi - lo)).translate(-lo) @ to_local
+        to_local = placement.grid_to_local(header, to_world, p.bool("use_grid_bbox", False),
+                                           self.filename)
         self.store = stores.load(header, storage, self.interpolation, to_local,
                                  self.multiplier, self.cells)
         self.to_local, self.shape = to_local, header.shape
@@ -274,57 +248,6 @@ class GridMedium(mi.Medium):
         # voxels per local unit on each axis, and whether lookups are trilinear
         self._voxels = (mi.Vector3f(x, y, z), self.interpolation == "trilinear")
 
-    def _load_temperature(self, p: Params, to_world: mi.ScalarTransform4f) -> None:
-        """``temperature_grid`` and its offset and scale (fire, :mod:`blackbody`)."""
-        offset = p.float("temperature_offset", 0.0)
-        scale = p.float("temperature_scale", 1.0, lo=0.0, lo_open=True)
-        if not p.has("temperature_grid"):
-            for name in ("temperature_offset", "temperature_scale"):
-                if p.has(name):
-                    raise PluginParameterError(
-                        f"grid_medium: parameter '{name}' applies to a 'temperature_grid'; "
-                        "give one (the name of a float grid of the .vdb, e.g. 'temperature')")
-            return
-        name = p.props["temperature_grid"]
-        if p.has("emission_grid"):
-            raise PluginParameterError(
-                "grid_medium: parameters 'temperature_grid' and 'emission_grid' both set the "
-                "emitted radiance; give one of them")
-        if scale <= 0.0:
-            raise PluginParameterError(
-                f"grid_medium: parameter 'temperature_scale' = {scale:g} is out of range; "
-                "allowed: > 0 (kelvin per unit of the grid)")
-        if self.emission is None:
-            self.emission = p.volume("emission", 1.0)
-        # any finite value: T = (value - offset) x scale, and a voxel at or below 0 K
-        # emits nothing (a negative grid made positive by the offset was refused)
-        grid, _, to_local = stores.load_side_grid(self.filename, name, to_world,
-                                                  "temperature_grid", channels=(1,),
-                                                  lo=-np.inf)
-        hottest = (float(grid.extrema()[0].max(initial=0.0)) - offset) * scale
-        if hottest > blackbody.T_MAX:
-            raise PluginParameterError(
-                f"grid_medium: temperature_grid {name!r} of '{self.filename}' reaches "
-                f"{hottest:.4g} K with temperature_offset = {offset:g} and temperature_scale "
-                f"= {scale:g}; allowed: at most {blackbody.T_MAX:g} K (check the grid's "
-                "units and temperature_scale)")
-        self.temperature = (grid, to_local, offset, scale)
-
-    def _check_albedo_grid(self) -> None:
-        """``albedo`` x ``albedo_grid`` within [0, 1] (the grid's values are >= 0)."""
-        grid, values, _ = self.albedo_grid
-        pool = grid.pool.numpy().reshape(-1, values.channels)
-        if values.upsampled:      # scale x model spectrum: bounded by their maxima
-            upper, _ = values.factors(pool)
-            top = float((upper[:, 0] * upper[:, 1]).max(initial=0.0))
-        else:
-            top = float(pool.max(initial=0.0))
-        highest = top * stores.volume_max(self.albedo, slack=0.0)
-        if highest > 1.0 + 1e-6:
-            raise PluginParameterError(
-                f"grid_medium: parameters 'albedo' x 'albedo_grid' reach {highest:.4g}; "
-                "allowed: albedo values in [0, 1] (scale the grid or set 'albedo')")
-
     # -- what the store holds, for tools and tests -----------------------------------
     @property
     def storage(self) -> str:
@@ -332,7 +255,7 @@ class GridMedium(mi.Medium):
 
     @property
     def sparse(self):
-        """The :class:`~mitsuba_plugins.sparse.SparseGrid` of sparse storage, else None."""
+        """The :class:`~mitsuba_plugins.grids.sparse.SparseGrid` of sparse storage, else None."""
         return getattr(self.store, "grid", None)
 
     @property
@@ -342,7 +265,7 @@ class GridMedium(mi.Medium):
     @property
     def control_scale(self) -> float:
         """The factor that makes the majorant grid's gray minorant a lower bound of every
-        channel (:class:`~mitsuba_plugins.majorant.MajorantBuilder` takes it with the
+        channel (:class:`~mitsuba_plugins.grids.bounds.MajorantBuilder` takes it with the
         multiplier's largest channel where one weight serves all: 1-channel or upsampled
         data), for controls that must stay below the extinction (decomposition tracking)."""
         m = self.multiplier
@@ -373,7 +296,7 @@ class GridMedium(mi.Medium):
         #: the finest bounds, for marches whose steps shrink with the bound
         self.march_grid = m.march_grid
         #: what tracking needs to cut hot majorant segments into tighter pieces
-        #: (mitsuba_plugins.walk.refined_piece), or None where no segment can be hot:
+        #: (mitsuba_plugins.tracking.walk.refined_piece), or None where no segment can be hot:
         #: then the kernels carry no refinement code at all
         self.refinement = m.refinement
 
@@ -408,16 +331,10 @@ class GridMedium(mi.Medium):
     def eval_albedo(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         """Single-scattering albedo at ``mei.p`` (per channel)."""
         albedo = self.albedo.eval(mei, active)
-        if self.albedo_grid is not None:
-            albedo = albedo * self._side_value(self.albedo_grid, mei, active)
+        if self.side.albedo is not None:
+            albedo = albedo * self.side.value(self.side.albedo, mei,
+                                              self.interpolation == "trilinear", active)
         return albedo
-
-    def _side_value(self, side, mei: mi.MediumInteraction3f, active):
-        """The value of a side grid ``(SparseGrid, GridValues, to_local)`` at ``mei.p``
-        as a spectrum (``emission_grid``, ``albedo_grid``)."""
-        grid, values, to_local = side
-        return stores.grid_value(grid, values, mi.Transform4f(to_local) @ mei.p,
-                                 self.interpolation == "trilinear", mei.wavelengths, active)
 
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active: mi.Bool = True):
         sigma_t = self.eval_sigma_t(mei, active)
@@ -435,14 +352,7 @@ class GridMedium(mi.Medium):
         if self.emission is None:
             return mi.UnpolarizedSpectrum(0.0)
         radiance = mi.UnpolarizedSpectrum(self.emission.eval(mei, active))
-        if self.emission_grid is not None:
-            radiance *= self._side_value(self.emission_grid, mei, active)
-        if self.temperature is not None:
-            grid, to_local, offset, scale = self.temperature
-            value = grid.eval(mi.Transform4f(to_local) @ mei.p,
-                              self.interpolation == "trilinear", active)
-            radiance *= blackbody.spectrum((value - offset) * scale, mei.wavelengths, active)
-        return radiance
+        return self.side.radiance(radiance, mei, self.interpolation == "trilinear", active)
 
     def traverse(self, callback):
         callback.put("scale", self.scale, mi.ParamFlags.Differentiable)
@@ -454,42 +364,19 @@ class GridMedium(mi.Medium):
         callback.put("albedo", self.albedo, mi.ParamFlags.Differentiable)
         if self.emission is not None:
             callback.put("emission", self.emission, mi.ParamFlags.Differentiable)
-        if self.emission_grid is not None and not self.emission_grid[1].converted:
-            callback.put("emission_bricks", self.emission_grid[0].bricks(),
-                         mi.ParamFlags.Differentiable)
-        if self.albedo_grid is not None and not self.albedo_grid[1].converted:
-            callback.put("albedo_bricks", self.albedo_grid[0].bricks(),
-                         mi.ParamFlags.Differentiable)
+        self.side.traverse(callback)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys=None):
-        # a refused value is replaced by the last accepted one, so that params holds
-        # what renders (a NaN stayed in params while renders used the old value)
-        scale = floats(self.scale)[0]
-        if not (np.isfinite(scale) and scale >= 0):
-            mi.set_property(self.scale, mi.Float(self._accepted[0]))
-            raise PluginParameterError(
-                f"grid_medium: parameter 'scale' = {scale!r} is invalid; allowed: a finite "
-                f"number >= 0 (the previous value {self._accepted[0]:g} is kept)")
-        factor = floats(self.sigma_t_factor)
-        if not all(np.isfinite(f) and f >= 0 for f in factor):
-            mi.set_property(self.sigma_t_factor, mi.Color3f(self._accepted[1]))
-            raise PluginParameterError(
-                f"grid_medium: parameter 'sigma_t' = {factor} is invalid; allowed: finite "
-                f"values >= 0 (the previous value {self._accepted[1]} is kept)")
+        scale, factor = checked_factors(self.scale, self.sigma_t_factor, self._accepted)
         self.multiplier = Multiplier(factor)
         dr.make_opaque(self.scale, self.sigma_t_factor)
         self._accepted = (scale, factor)
         self._fold_gray_factor()
-        stores.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
+        nested_volume.check_volume_range("grid_medium", "albedo", self.albedo, 0.0, 1.0)
         self.store.changed(keys)
         self._update_chromatic()
-        if self.emission_grid is not None:
-            stores.synchronize(self.emission_grid[0], "emission_bricks", keys)
-        if self.albedo_grid is not None:
-            stores.synchronize(self.albedo_grid[0], "albedo_bricks", keys)
-            if keys is None or any(k.startswith("albedo") for k in keys):
-                self._check_albedo_grid()
+        self.side.changed(keys, self.albedo)
         self._update_majorants()
 
     def to_string(self) -> str:

@@ -2,15 +2,15 @@
 interface, so ``mi.render(scene, params, ...)`` with ``dr.backward`` / ``dr.forward``
 works as with ``prb``): Mitsuba's ``RBIntegrator`` scaffolding (film, ray generation,
 splatting and its adjoint) around our path loop run twice, primal then replay
-(:mod:`mitsuba_plugins.replay`)."""
+(:mod:`mitsuba_plugins.tracking.replay`)."""
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.replay import Replay
-from mitsuba_plugins.scene_media import SceneMedia
-from mitsuba_plugins.volumes import trace_volumes
+from mitsuba_plugins.tracking.replay import Replay
+from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.volume_loop import trace_volumes
 
 VARIANT = mi.variant()
 

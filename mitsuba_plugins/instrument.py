@@ -13,7 +13,7 @@ which restore them on exit (no module global of the core is rebound from outside
   Mitsuba's one global majorant; tiny: everywhere). Read when a grid medium is loaded
   and when a kernel is traced;
 * :func:`crossing_loop`: force the walk's tight loop over event-free pieces on or off
-  (None: each medium's own choice, :attr:`mitsuba_plugins.contract.Tracker.tight_loop`).
+  (None: each medium's own choice, :attr:`mitsuba_plugins.tracking.trackers.Tracker.tight_loop`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ SLOTS = ("flight_null", "shadow_tentative", "medium_vertices", "surface_vertices
 #: and emitter sampling (next-event estimation).
 TERMS = ("emission", "nee")
 #: A majorant segment of optical depth (sigma_maj x length) above this is *hot*: walked
-#: in pieces with tighter bounds (:func:`mitsuba_plugins.walk.refined_piece`); below it,
+#: in pieces with tighter bounds (:func:`mitsuba_plugins.tracking.walk.refined_piece`); below it,
 #: plain tracking takes at most this many tentative collisions per segment on average,
 #: which is cheaper than pieces (each costs a lookup): at 16 the benchmark's max/mean-100
 #: grid (cells of optical depth 43) was refined and its time per sample rose 1.37x over

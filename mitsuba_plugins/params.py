@@ -100,7 +100,7 @@ class Params:
     def volume(self, name: str, default, hi: float | None = None, illuminant: bool = False):
         """A float, rgb or nested volume parameter as a ``mi.Volume`` (a constant
         range-checked here; check a nested volume's values with
-        :func:`mitsuba_plugins.stores.check_volume_range`).
+        :func:`mitsuba_plugins.grids.nested_volume.check_volume_range`).
 
         In spectral variants a constant is upsampled by Mitsuba's rules: ``illuminant``
         (emission) as an emitter's radiance is (``d65``: an RGB white renders white, as an

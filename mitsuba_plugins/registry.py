@@ -23,12 +23,19 @@ PLUGINS = {
     "volpath_raymarch": "mitsuba_plugins.integrators.volpath_raymarch",
 }
 #: shared modules whose classes bind variant types at import; re-imported first
-SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.dda",
-                   "mitsuba_plugins.majorant", "mitsuba_plugins.contract", "mitsuba_plugins.walk",
-                   "mitsuba_plugins.estimators", "mitsuba_plugins.scene_media",
-                   "mitsuba_plugins.replay", "mitsuba_plugins.flights",
-                   "mitsuba_plugins.marching", "mitsuba_plugins.paths",
-                   "mitsuba_plugins.volumes", "mitsuba_plugins.differentiable")
+SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.tracking.majorant_grid",
+                   "mitsuba_plugins.tracking.walk",
+                   "mitsuba_plugins.tracking.null_collision",
+                   "mitsuba_plugins.tracking.majorant",
+                   "mitsuba_plugins.tracking.medium_protocol",
+                   "mitsuba_plugins.tracking.trackers",
+                   "mitsuba_plugins.tracking.homogeneous",
+                   "mitsuba_plugins.tracking.transmittance",
+                   "mitsuba_plugins.tracking.scene_media",
+                   "mitsuba_plugins.tracking.replay",
+                   "mitsuba_plugins.tracking.free_flights",
+                   "mitsuba_plugins.tracking.marching", "mitsuba_plugins.path_loop",
+                   "mitsuba_plugins.volume_loop", "mitsuba_plugins.differentiable")
 #: plugins that are not integrators, by kind
 KINDS = {"grid_medium": "medium"}
 

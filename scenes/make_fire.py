@@ -3,7 +3,7 @@
 Run from anywhere: ``python scenes/make_fire.py``. Deterministic (fixed seed). The file
 holds two half-float grids as Houdini / EmberGen export them: ``density`` (smoke, 0..1)
 and ``temperature`` (in kilokelvin above ambient: ``temperature_scale = 1000`` in the
-scene; the core reaches about 2.4 kK, the smoke's edge cools below the 100 K cutoff). Written through Debian's ``python3-openvdb`` (:mod:`mitsuba_plugins.vdb`), with
+scene; the core reaches about 2.4 kK, the smoke's edge cools below the 100 K cutoff). Written through Debian's ``python3-openvdb`` (:mod:`mitsuba_plugins.grids.vdb_openvdb`), with
 Blosc or zip compression as that build defaults.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
-from mitsuba_plugins.vdb import DEFAULT_PYTHON  # noqa: E402
+from mitsuba_plugins.grids.vdb_openvdb import DEFAULT_PYTHON  # noqa: E402
 
 
 def plume(seed: int = 11):

@@ -20,7 +20,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
-from mitsuba_plugins.gridio import write_vol  # noqa: E402
+from mitsuba_plugins.grids.gridio import write_vol  # noqa: E402
 
 RES = 48
 CHROMATIC = (1.0, 0.3, 0.08)

@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import vdb
+from mitsuba_plugins.grids import vdb_openvdb
 from mitsuba_plugins.tools import stats
 from mitsuba_plugins.validity import counted
 
@@ -260,7 +260,7 @@ N_RAYS = 4096
 
 
 def grid_segments(grid, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None = None):
-    """All segments of a :class:`~mitsuba_plugins.dda.MajorantGrid` along ``ray`` as numpy
+    """All segments of a :class:`~mitsuba_plugins.tracking.majorant_grid.MajorantGrid` along ``ray`` as numpy
     arrays ``(t0, t1, sigma_maj, valid)`` of shape ``(n_rays, n_segments)``."""
     rx, ry, rz = grid.resolution
     limit = max_segments or (rx + ry + rz + 3)
@@ -278,7 +278,7 @@ def grid_segments(grid, ray: mi.Ray3f, t_start, t_stop, max_segments: int | None
 
 def build_majorants(data: np.ndarray, resolution, weights=1.0) -> np.ndarray:
     """Cell bounds ``(Rz, Ry, Rx)`` of a whole ``(Z, Y, X, C)`` array."""
-    from mitsuba_plugins.majorant import MajorantBuilder
+    from mitsuba_plugins.grids.bounds import MajorantBuilder
     return MajorantBuilder(data.shape, resolution, weights).add_all(data).finish()
 
 
@@ -331,7 +331,7 @@ def software_dense_textures(monkeypatch) -> None:
     do (CUDA's hardware interpolation has 8-bit weights: lookups then differ by up to
     2^-9 of the maximum; elsewhere nothing changes), for tests that compare the two
     storages' bookkeeping lookup for lookup."""
-    from mitsuba_plugins import stores
+    from mitsuba_plugins.grids import stores
     texture = stores.mi.Texture3f
     monkeypatch.setattr(stores.mi, "Texture3f",
                         lambda *a, **kw: texture(*a, **{**kw, "use_accel": False}))
@@ -349,7 +349,7 @@ def make_vdb(path, *bodies: str, **arrays) -> dict:
     script += "".join(f"{k} = np.load({v!r})\n" for k, v in files.items())
     script += "".join(textwrap.dedent(b).strip("\n") + "\n" for b in bodies)
     script += f"\nvdb.write({str(path)!r}, grids=grids)\nprint(json.dumps(out))\n"
-    proc = subprocess.run([vdb.DEFAULT_PYTHON, "-c", script], capture_output=True, text=True)
+    proc = subprocess.run([vdb_openvdb.DEFAULT_PYTHON, "-c", script], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 

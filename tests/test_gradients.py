@@ -1,4 +1,4 @@
-"""Issue 26: gradients of ``volpath_delta`` (path replay, mitsuba_plugins.replay).
+"""Issue 26: gradients of ``volpath_delta`` (path replay, mitsuba_plugins.tracking.replay).
 
 Every statistical check is Welch's t-test of the derivative of an image's mean along a
 parameter direction: ours (8 gradient renders, seeds 0-7) against central finite
@@ -135,7 +135,7 @@ def test_gradients_where_prbvolpath_fails():
 def test_mitsuba_media(tmp_path):
     """Mitsuba's own heterogeneous (gridvolume) and homogeneous media: their extinction
     and albedo."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     path = str(tmp_path / "g.vol")
     rng = np.random.default_rng(1)
     gridio.write_vol(path, rng.uniform(0.5, 2.0, (8, 8, 8, 1)).astype(np.float32))
@@ -191,7 +191,7 @@ def test_sparse_bricks_gradient_equals_dense(tmp_path, monkeypatch):
     hardware interpolation (8-bit weights) changes primal tracking decisions, and the
     two gradients then differ by other paths, not by the bookkeeping this test checks
     (measured on an H100: 1.7% of the voxels beyond the tolerance)."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     software_dense_textures(monkeypatch)
     data, _ = gridio.read_grid(SMOKE)
     data = data.copy()
@@ -214,7 +214,7 @@ def test_density_grows_where_the_grid_is_empty(tmp_path):
     scattering the in-scattering a new density would add is not estimated (no real
     collision is sampled where sigma_t = 0: measured -0.085 against -0.040 at max_depth
     2; docs/usage.md), so albedo 0 here."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     data, _ = gridio.read_grid(SMOKE)
     data = data.copy()
     data[:, :, :16] = 0.0
@@ -244,7 +244,7 @@ def test_sparse_and_emission_grids_and_albedo_grid(tmp_path):
     """A .vdb with a density, a 'temperature' emission grid and a 'tint' albedo_grid
     stored sparse, and an albedo gridvolume: the stored bricks of the three grids and the
     gridvolume's data, against finite differences."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     n = 16
     z, y, x = np.meshgrid(*(np.linspace(-1, 1, n),) * 3, indexing="ij")
     r2 = x * x + y * y + z * z
@@ -323,7 +323,7 @@ def _homogeneous(**kw) -> dict:
 
 
 def _heterogeneous(tmp_path) -> dict:
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     path = str(tmp_path / "h.vol")
     rng = np.random.default_rng(2)
     gridio.write_vol(path, rng.uniform(0.2, 1.5, (6, 6, 6, 1)).astype(np.float32))
@@ -566,7 +566,7 @@ def test_primal_render_with_grad_enabled_parameters_still_works():
 def test_prbvolpath_gradient_equals_heterogeneous(tmp_path):
     """d(mean image)/d(density grid) with Mitsuba's prbvolpath: grid_medium (dense storage,
     'data' exposed as differentiable) gives what heterogeneous + gridvolume gives."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     rng = np.random.default_rng(1)
     gridio.write_vol(tmp_path / "g.vol", rng.uniform(0.5, 2.0, (8, 8, 8, 1)).astype(np.float32))
     to_world = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)

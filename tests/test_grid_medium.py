@@ -10,7 +10,7 @@ import pytest
 
 from helpers import (LUMINANCE, SCENES, assert_same_expectation, estimate, load, medium_at,
                      render)
-from mitsuba_plugins import gridio
+from mitsuba_plugins.grids import gridio
 
 RES, SPP = 32, 16
 
@@ -222,7 +222,7 @@ def test_global_majorant_is_gray_max(grids):
     else:
         # the upsampled factor's peak over the visible range, read at the voxel of value 3
         # (its centre: no blending) at 4096 wavelengths: a bound within 1%
-        from mitsuba_plugins.spectra import probe_wavelengths
+        from mitsuba_plugins.grids.spectra import probe_wavelengths
         mei = dr.zeros(mi.MediumInteraction3f, 1024)
         mei.wavelengths = probe_wavelengths(1024)
         mei.p = mi.Point3f(4.5 / 14, 3.5 / 10, 2.5 / 12)
@@ -261,7 +261,7 @@ def test_traverse_and_parameters_changed(grids):
         assert np.allclose(np.array(medium.get_radiance(mei)).ravel(),
                            LUMINANCE @ [1.0, 2.0, 3.0], rtol=1e-5)
     else:   # an emitter's rule: d65 times the upsampled colour
-        from mitsuba_plugins.spectra import probe_wavelengths
+        from mitsuba_plugins.grids.spectra import probe_wavelengths
         mei = dr.zeros(mi.MediumInteraction3f, 64)
         si = dr.zeros(mi.SurfaceInteraction3f, 64)
         mei.wavelengths = si.wavelengths = probe_wavelengths(64)

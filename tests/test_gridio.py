@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from mitsuba_plugins import gridio
+from mitsuba_plugins.grids import gridio
 from mitsuba_plugins.tools import cli, grid_info
 
 

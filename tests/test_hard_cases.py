@@ -390,7 +390,7 @@ HOMOGENEOUS_CONFIGURATIONS = ("delta-residual", "march-multi", "march-single",
 
 
 def _degenerate_sparse(tmp, value: float) -> dict:
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     data = np.zeros((24, 24, 24, 1), np.float32)
     data[11, 12, 13] = value
     gridio.write_vol(tmp / "g.vol", data)

@@ -7,9 +7,10 @@ import pytest
 
 from helpers import (N_RAYS, build_majorants, check_segment_bounds, grid, grid_segments,
                      random_rays)
-from mitsuba_plugins import gridio
-from mitsuba_plugins.dda import MajorantGrid
-from mitsuba_plugins.majorant import MajorantBuilder, auto_resolution, pool, voxel_ranges
+from mitsuba_plugins.grids import gridio
+from mitsuba_plugins.tracking.majorant_grid import MajorantGrid
+from mitsuba_plugins.tracking.majorant import auto_resolution
+from mitsuba_plugins.grids.bounds import MajorantBuilder, pool, voxel_ranges
 
 
 TRANSFORMS = {
@@ -95,7 +96,7 @@ def test_mitsuba_heterogeneous_is_tracked_cell_by_cell(tmp_path, transform, wrap
     built from the volume's data (its placement read from the medium), and its bounds
     hold along random rays for every transform, wrap mode (repeat blends the edges) and
     filter, gray and RGB; the shell leaves most cells far below the global majorant."""
-    from mitsuba_plugins.contract import tracker_for
+    from mitsuba_plugins.tracking.trackers import tracker_for
     data = _shell(channels=3 if chromatic else 1)
     gridio.write_vol(tmp_path / "shell.vol", data)
     medium = mi.load_dict({

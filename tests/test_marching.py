@@ -1,4 +1,4 @@
-"""The ray-marching building blocks alone (mitsuba_plugins.marching): closed forms,
+"""The ray-marching building blocks alone (mitsuba_plugins.tracking.marching): closed forms,
 cell sampling (t-tests against the integral it estimates), the cells' tiling, the
 marched transmittance's bias against a converged optical depth, and that a new step
 size reuses the compiled kernel."""
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from helpers import SMOKE, SPARSE, camera, exact_optical_depth, grid, media_scene, spectra_of
-from mitsuba_plugins import contract, marching
+from mitsuba_plugins.tracking import trackers
+from mitsuba_plugins.tracking import marching
 from mitsuba_plugins.tools import stats
 
 
@@ -82,7 +83,7 @@ def _cells(marcher, tracker, ray, t_max, u, max_cells=4096):
 @pytest.mark.parametrize("mode", marching.STEP_MODES)
 def test_cells_tile_the_segment(mode):
     medium = mi.load_dict(grid(filename=SPARSE, scale=20.0))
-    tracker = contract.tracker_for(medium)
+    tracker = trackers.tracker_for(medium)
     rng = np.random.default_rng(11)
     marcher = marching.Marcher(mode, 0.05, 0.2)
     for _ in range(20):
@@ -103,7 +104,7 @@ def test_majorant_mode_crosses_empty_space_in_one_step(tmp_path):
     data = np.zeros((16, 16, 16), np.float32)
     data[6:10, 6:10, 6:10] = 50.0
     np.save(tmp_path / "block.npy", data)
-    tracker = contract.tracker_for(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
+    tracker = trackers.tracker_for(mi.load_dict(grid(filename=str(tmp_path / "block.npy"),
                                                        scale=1.0)))
     ray = mi.Ray3f(mi.Point3f(-3, 0.01, 0.02), mi.Vector3f(1, 0, 0))
     cells, tmin, tmax = _cells(marching.Marcher("majorant", 0.05, 0.25), tracker, ray, 10.0, 0.5)
@@ -139,7 +140,7 @@ def _marched(medium, marcher, n=1 << 18, seed=0):
     ray, length = _smoke_segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T = marcher.transmittance(contract.tracker_for(medium), ray, mi.Float(length), sampler,
+    T = marcher.transmittance(trackers.tracker_for(medium), ray, mi.Float(length), sampler,
                               mi.Bool(True))
     return np.array(T)
 

@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 
 from helpers import assert_same_expectation, camera, estimate, grid, media_scene, render
-from mitsuba_plugins import contract, instrument, scene_media, walk
+from mitsuba_plugins import instrument
+from mitsuba_plugins.tracking import scene_media
+from mitsuba_plugins.tracking import trackers
+from mitsuba_plugins.tracking import walk
 
 
 DENSE_VOXEL_SCRIPT = """
@@ -57,7 +60,7 @@ def _tracker(tmp_path, interpolation, value=1e8):
     path = tmp_path / "v.npy"
     np.save(path, data)
     medium = mi.load_dict(grid(filename=str(path), scale=1.0, interpolation=interpolation))
-    return contract.tracker_for(medium), medium
+    return trackers.tracker_for(medium), medium
 
 
 @pytest.mark.parametrize("interpolation", ["trilinear", "nearest"])
@@ -102,10 +105,10 @@ def test_only_hot_media_carry_refinement(monkeypatch):
     hold neither refinement nor work budget (both cost 4-6% when traced)."""
     medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, None)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is None and not contract.tracker_for(medium).hot
+    assert medium.refinement is None and not trackers.tracker_for(medium).hot
     medium = [m for m in scene_media.scene_media(_smoke(monkeypatch, 0.5)) if
               not m.is_homogeneous()][0]
-    assert medium.refinement is not None and contract.tracker_for(medium).hot
+    assert medium.refinement is not None and trackers.tracker_for(medium).hot
 
 
 @pytest.mark.parametrize("method", ["track_length", "ratio", "residual"])
@@ -179,7 +182,7 @@ def test_the_tight_crossing_loop_is_chosen_per_medium():
     """Issue 29: the walk's tight loop is traced only for majorant grids of at least
     TIGHT_LOOP_CELLS cells along an axis (rays cross enough cells for it to pay), never
     for a one-cell grid; ``instrument.crossing_loop`` overrides the choice."""
-    from mitsuba_plugins.contract import TIGHT_LOOP_CELLS, GridTracker
+    from mitsuba_plugins.tracking.trackers import TIGHT_LOOP_CELLS, GridTracker
     fine, coarse, one = (mi.load_dict(grid(majorant_resolution=n))
                          for n in (TIGHT_LOOP_CELLS, TIGHT_LOOP_CELLS // 2, 1))
     assert GridTracker(fine).tight_loop

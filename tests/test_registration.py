@@ -49,7 +49,7 @@ def test_switch_variant_and_render():
 
 def _core_files():
     root = Path(__file__).resolve().parents[1]
-    core = [p for p in (root / "mitsuba_plugins").glob("*.py")]
+    core = [p for p in (root / "mitsuba_plugins").rglob("*.py") if "tools" not in p.parts]
     return core + list((root / "integrators").glob("*.py")) + list((root / "media").glob("*.py"))
 
 
@@ -73,9 +73,10 @@ def test_variant_bound_modules_are_registered():
     (``VARIANT = mi.variant()`` or a ``DRJIT_STRUCT`` class) is re-imported on a variant
     switch, so it must be listed in registry.SUPPORT_MODULES."""
     from mitsuba_plugins.registry import SUPPORT_MODULES
-    bound = {f"mitsuba_plugins.{p.stem}" for p in Path(__file__).resolve().parents[1]
-             .joinpath("mitsuba_plugins").glob("*.py")
-             if "DRJIT_STRUCT" in p.read_text() or "VARIANT = mi.variant()" in p.read_text()}
+    root = Path(__file__).resolve().parents[1]
+    bound = {_module_name(p, root) for p in _core_files()
+             if p.parent.name not in ("integrators", "media")
+             and ("DRJIT_STRUCT" in p.read_text() or "VARIANT = mi.variant()" in p.read_text())}
     assert bound - set(SUPPORT_MODULES) == set()
 
 

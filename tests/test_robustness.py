@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from helpers import SCENES, camera, grid, media_scene, render, start_cli
-from mitsuba_plugins import gridio, output
+from mitsuba_plugins import output
+from mitsuba_plugins.grids import gridio
 from mitsuba_plugins.tools import cli, compare as cmp
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,9 @@ import pytest
 from helpers import (LUMINANCE, SMOKE, SPARSE, assert_same_expectation, assert_same_render,
                      camera, check_segment_bounds, estimate, grid, media_scene, medium_at,
                      render, software_dense_textures)
-from mitsuba_plugins import bricks, gridio, stores
+from mitsuba_plugins.grids import stores
+from mitsuba_plugins.grids import bricks
+from mitsuba_plugins.grids import gridio
 
 
 def _random_grid(shape, fraction, rng):

@@ -1,5 +1,5 @@
 """Volumes as studios ship them (issue 27): fire (a temperature grid becomes blackbody
-emission, mitsuba_plugins.blackbody) and colour grids (``albedo_grid``).
+emission, mitsuba_plugins.grids.blackbody) and colour grids (``albedo_grid``).
 
 * The normalised Planck spectrum against pbrt-v4's own formula and constants.
 * The RGB / luminance table against an independent integration (``colour-science``: its
@@ -21,7 +21,7 @@ import pytest
 
 from helpers import (SMOKE as SMOKE_VOL, assert_same_expectation, camera, emissive_slab, estimate, make_vdb,
                      media_scene)
-from mitsuba_plugins import blackbody
+from mitsuba_plugins.grids import blackbody
 from mitsuba_plugins.tools import stats
 
 TEMPERATURES = np.arange(1000.0, 10001.0, 500.0)

@@ -19,7 +19,7 @@ import pytest
 
 from conftest import VARIANT
 from helpers import assert_same_expectation, camera, estimate, homogeneous, load, media_scene
-from mitsuba_plugins import scene_media
+from mitsuba_plugins.tracking import scene_media
 
 BACKEND = VARIANT.split("_", 1)[0]
 SPECTRAL = f"{BACKEND}_ad_spectral"
@@ -114,7 +114,7 @@ def test_spectral_rgb_extinction_is_chromatic():
 
 def test_index_channel_reads_every_wavelength():
     mi.set_variant(SPECTRAL)
-    from mitsuba_plugins.contract import index_channel
+    from mitsuba_plugins.tracking.trackers import index_channel
     spec = mi.Spectrum(1.0, 2.0, 3.0, 4.0)
     got = [index_channel(spec, mi.UInt32(c))[0] for c in range(4)]
     assert np.allclose(got, [1, 2, 3, 4])
@@ -130,7 +130,7 @@ def test_polarized_variant_is_refused_with_one_line():
 @pytest.fixture(scope="module")
 def rgb_grids(tmp_path_factory):
     """A gray and an RGB grid (with empty space and a black corner) as .vol files."""
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     root = tmp_path_factory.mktemp("variant_grids")
     rng = np.random.default_rng(11)
     gray = (rng.random((10, 12, 9)) ** 2 * 2.0).astype(np.float32)
@@ -224,7 +224,7 @@ def test_nested_chromatic_volume_against_heterogeneous(other_variant, rgb_grids,
     gridvolume 0 in spectral variants, so the medium called itself gray (volpath's
     green of (1, 0.2, 1) 24 sigma off), and in spectral variants the RGB grid was
     refused (its model coefficients checked >= 0)."""
-    from mitsuba_plugins.stores import volume_channels
+    from mitsuba_plugins.grids.nested_volume import volume_channels
     sigma_t = _nested(kind, rgb_grids)
     chromatic = not (mi.is_monochromatic and kind == "constvolume")
     assert volume_channels(mi.load_dict(sigma_t)) == (3 if chromatic else 1)
@@ -290,7 +290,7 @@ def test_a_mitsuba_majorant_below_the_extinction_is_replaced():
     upsampled spectrum, 0.84 for (1, 0.2, 1), below the spectrum's 0.9998 in spectral
     variants: tracking with it would be biased. Our trackers check it at sampled points
     and wavelengths and use the largest extinction seen instead; in RGB it stays."""
-    from mitsuba_plugins.contract import probe_interaction, tracker_for
+    from mitsuba_plugins.tracking.trackers import probe_interaction, tracker_for
     def medium():
         return mi.load_dict({"type": "heterogeneous", "scale": 3.0, "sigma_t": {
             "type": "constvolume", "value": {"type": "rgb", "value": [1.0, 0.2, 1.0]}}})

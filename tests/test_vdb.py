@@ -13,7 +13,8 @@ import pytest
 
 from helpers import (SMOKE, assert_same_expectation, camera, emitted_in_variant, estimate,
                      make_vdb, media_scene, medium_at)
-from mitsuba_plugins import gridio, vdb
+from mitsuba_plugins.grids import vdb_openvdb
+from mitsuba_plugins.grids import gridio
 from mitsuba_plugins.tools import cli
 
 
@@ -94,7 +95,7 @@ def test_half_floats_tiles_and_vectors(tmp_path):
     rgb, _ = gridio.read_grid(tmp_path / "m.vdb", grid="rgb")
     assert rgb.shape == (3, 3, 3, 3)
     np.testing.assert_array_equal(rgb[1, 1, 1], [1.0, 2.0, 3.0])
-    info = {g["name"]: g for g in vdb.vdb_info(tmp_path / "m.vdb")}
+    info = {g["name"]: g for g in vdb_openvdb.vdb_info(tmp_path / "m.vdb")}
     assert info["tiles"]["active_voxels"] == 256 * 16 * 16 and info["half"]["half_float"]
 
 
@@ -142,8 +143,8 @@ def test_corrupt_and_truncated_files_are_named(tmp_path):
 
 def test_missing_openvdb_names_the_package(tmp_path, monkeypatch):
     (tmp_path / "x.vdb").write_bytes(b"x")
-    monkeypatch.setenv(vdb.PYTHON_VARIABLE, sys.executable)   # the venv: no pyopenvdb
-    monkeypatch.setenv(vdb.READER_VARIABLE, "worker")          # nor the compiled reader
+    monkeypatch.setenv(vdb_openvdb.PYTHON_VARIABLE, sys.executable)   # the venv: no pyopenvdb
+    monkeypatch.setenv(vdb_openvdb.READER_VARIABLE, "worker")          # nor the compiled reader
     with pytest.raises(gridio.GridFileError, match="apt-get install -y python3-openvdb"):
         gridio.read_header(tmp_path / "x.vdb")
 
@@ -292,7 +293,7 @@ def test_convert_to_vdb_keeps_placement_and_values(tmp_path, capsys):
     data[1:4, 2:6, 3:8] = rng.uniform(0.5, 2.0, (3, 4, 5, 1))
     gridio.write_vol(tmp_path / "a.vol", data, bbox=((-1.0, 0.5, 2.0), (2.0, 1.9, 3.2)))
     gridio.convert(tmp_path / "a.vol", tmp_path / "a.vdb", report=lambda line: None)
-    info = {g["name"]: g for g in vdb.vdb_info(tmp_path / "a.vdb")}
+    info = {g["name"]: g for g in vdb_openvdb.vdb_info(tmp_path / "a.vdb")}
     assert info["density"]["active_voxels"] == 3 * 4 * 5
     gridio.convert(tmp_path / "a.vdb", tmp_path / "b.vol", report=lambda line: None)
     back, bbox = gridio.read_grid(tmp_path / "b.vol")

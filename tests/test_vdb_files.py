@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 
 from helpers import SCENES, make_vdb, medium_at
-from mitsuba_plugins import gridio, vdb, vdbfile
+from mitsuba_plugins.grids import vdb_openvdb
+from mitsuba_plugins.grids import vdb_header
+from mitsuba_plugins.grids import gridio
 from mitsuba_plugins.tools import cli
 
 VALUES = (1.0, 5.0, 50.0)
@@ -51,13 +53,13 @@ def _openvdb_box(path, address, lo, shape) -> np.ndarray:
         g.copyToArray(a, ijk={tuple(lo)})
         np.save(sys.stdout.buffer, a.transpose(2, 1, 0))
     """)
-    proc = subprocess.run([vdb.DEFAULT_PYTHON, "-c", script], capture_output=True)
+    proc = subprocess.run([vdb_openvdb.DEFAULT_PYTHON, "-c", script], capture_output=True)
     assert proc.returncode == 0, proc.stderr.decode()
     return np.load(io.BytesIO(proc.stdout))
 
 
 def test_several_grids_of_one_name_are_addressed_and_read_as_openvdb_reads_them(multi):
-    entries = vdbfile.read_grid_list(multi)
+    entries = vdb_header.read_grid_list(multi)
     assert [e.address for e in entries] == ["density[0]", "density[1]", "density[2]",
                                             "temperature"]
     with pytest.raises(gridio.GridFileError, match=r"3 grids are named 'density'; choose one "
@@ -169,7 +171,7 @@ def test_truncated_and_foreign_type_files_give_one_line(tmp_path):
         gridio.read_header(tmp_path / "types.vdb", "color")
     data, _ = gridio.read_grid(tmp_path / "types.vdb", grid="temperature")
     assert data.max() == 2.0                     # the other grids still read
-    listed = {g["address"]: g for g in vdb.vdb_info(tmp_path / "types.vdb")}
+    listed = {g["address"]: g for g in vdb_openvdb.vdb_info(tmp_path / "types.vdb")}
     assert not listed["density"]["readable"] and listed["temperature"]["readable"]
 
 
@@ -192,17 +194,17 @@ def test_a_wide_flat_grid_loads_in_bounded_reader_memory(tmp_path):
         grids.append(g)""")
     script = textwrap.dedent(f"""
         import mitsuba_plugins, resource, sys
-        from mitsuba_plugins import gridio, vdb
-        from mitsuba_plugins.bricks import BrickBuilder
+        from mitsuba_plugins.grids import gridio, vdb_openvdb
+        from mitsuba_plugins.grids.bricks import BrickBuilder
         header = gridio.read_header({str(tmp_path / 'flat.vdb')!r})
         builder = BrickBuilder(header.shape)
-        for row, cols, blocks in vdb.iter_vdb_bricks(header):
+        for row, cols, blocks in vdb_openvdb.iter_vdb_bricks(header):
             builder.add_row(row, cols, blocks)
         maxima, _ = builder.extrema()
         print(builder.stored - 1, float(maxima.max()),
               resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
     """)
-    env = dict(os.environ, **{vdb.MEMORY_VARIABLE: str(1 << 30)})
+    env = dict(os.environ, **{vdb_openvdb.MEMORY_VARIABLE: str(1 << 30)})
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr
@@ -219,7 +221,7 @@ def test_the_readers_memory_cap_gives_one_line(tmp_path, monkeypatch):
         g = vdb.FloatGrid(); g.name = "density"
         g.copyFromArray(np.random.default_rng(0).random((256, 256, 256), np.float32) + 1)
         grids.append(g)""")
-    monkeypatch.setenv(vdb.MEMORY_VARIABLE, str(96 << 20))
+    monkeypatch.setenv(vdb_openvdb.MEMORY_VARIABLE, str(96 << 20))
     with pytest.raises(gridio.GridFileError, match="block.vdb': .*out of memory .*limit 96 MiB"):
         gridio.read_grid(tmp_path / "block.vdb")
 
@@ -239,9 +241,9 @@ def test_a_reader_that_sends_nothing_is_stopped(tmp_path, monkeypatch):
     argv, fifo = _stuck(tmp_path)
     holder = os.open(fifo, os.O_RDWR)          # keeps the pipe open, never writes
     try:
-        monkeypatch.setenv(vdb.TIMEOUT_VARIABLE, "1")
+        monkeypatch.setenv(vdb_openvdb.TIMEOUT_VARIABLE, "1")
         with open(fifo, "rb") as voxels:
-            worker = vdb._Worker(tmp_path / "out.vdb", argv, stdin=voxels)
+            worker = vdb_openvdb._Worker(tmp_path / "out.vdb", argv, stdin=voxels)
         t0 = time.perf_counter()
         with pytest.raises(gridio.GridFileError, match="sent nothing for 1 s and was stopped"):
             worker.read_line()
@@ -257,9 +259,9 @@ def test_the_reader_dies_with_its_parent(tmp_path):
     holder = os.open(fifo, os.O_RDWR)
     script = textwrap.dedent(f"""
         import mitsuba_plugins, time
-        from mitsuba_plugins import vdb
+        from mitsuba_plugins.grids import vdb_openvdb
         with open({str(fifo)!r}, "rb") as voxels:
-            w = vdb._Worker({str(tmp_path / "out.vdb")!r}, {argv!r}, stdin=voxels)
+            w = vdb_openvdb._Worker({str(tmp_path / "out.vdb")!r}, {argv!r}, stdin=voxels)
         time.sleep(2.0)                      # the worker has set its limits by now
         print(w.proc.pid, flush=True)
         time.sleep(60)
@@ -310,13 +312,13 @@ def test_grid_convert_never_drops_a_grid(multi, tmp_path, capsys):
     one = tmp_path / "one.vdb"
     assert cli.main(["grid", "convert", str(multi), str(one), "--grid", "temperature"]) == 0
     assert cli.main(["grid", "convert", str(one), str(one), "--grid", "temperature"]) == 0
-    assert [g.name for g in vdbfile.read_grid_list(one)] == ["temperature"]
+    assert [g.name for g in vdb_header.read_grid_list(one)] == ["temperature"]
 
 
 def test_a_three_channel_grid_converts_to_vdb_and_back(tmp_path, capsys):
     source = SCENES / "data" / "chromatic.vol"
     assert cli.main(["grid", "convert", str(source), str(tmp_path / "c.vdb")]) == 0
-    assert [g.value_type for g in vdbfile.read_grid_list(tmp_path / "c.vdb")] == ["vec3s"]
+    assert [g.value_type for g in vdb_header.read_grid_list(tmp_path / "c.vdb")] == ["vec3s"]
     original, _ = gridio.read_grid(source)
     back, _ = gridio.read_grid(tmp_path / "c.vdb")
     # the .vdb's active box: the non-zero voxels, plus one voxel of background around
@@ -331,7 +333,7 @@ def test_tiles_and_bands_read_what_whole_rows_read(tmp_path, monkeypatch, chunk)
     """The reader cut into tiny tiles (brick rows) and bands (slices) reads the same
     values and the same bricks as in one piece: a random grid with empty space, 3
     channels, a box that is no multiple of 8."""
-    from mitsuba_plugins.bricks import BrickBuilder
+    from mitsuba_plugins.grids.bricks import BrickBuilder
     rng = np.random.default_rng(4)
     values = rng.random((37, 29, 23, 3)).astype(np.float32)
     values[5:20, :, 3:11] = 0.0
@@ -344,7 +346,7 @@ def test_tiles_and_bands_read_what_whole_rows_read(tmp_path, monkeypatch, chunk)
         header = gridio.read_header(tmp_path / "rgb.vdb")
         data, _ = gridio.read_grid(tmp_path / "rgb.vdb")
         builder = BrickBuilder(header.shape)
-        for row, cols, blocks in vdb.iter_vdb_bricks(header):
+        for row, cols, blocks in vdb_openvdb.iter_vdb_bricks(header):
             builder.add_row(row, cols, blocks)
         return data, builder.finish()
     whole, (index, pool, _, _) = read()
@@ -374,13 +376,13 @@ def test_a_huge_sparse_box_loads_sparse_and_dense_is_refused_with_the_size(
     """Issue 46: storage = 'dense' on a small .vdb whose two voxels span a huge box
     allocated gigabytes without a word; sparse storage refused an active box over 2^32
     voxels although two bricks hold it, speaking of "a dense grid"."""
-    from mitsuba_plugins import stores
+    from mitsuba_plugins.grids import value_checks
     medium = mi.load_dict({"type": "grid_medium", "filename": str(two_far_voxels),
                            "storage": "sparse"})
     assert medium.storage == "sparse" and medium.sparse.stored - 1 <= 8
     assert mi.load_dict({"type": "grid_medium", "filename": str(two_far_voxels)}).storage \
         == "sparse"
-    monkeypatch.setattr(stores, "machine_memory", lambda: 16e9)
+    monkeypatch.setattr(value_checks, "machine_memory", lambda: 16e9)
     with pytest.raises(Exception, match=r"storage = 'dense' would allocate 37.2 GB for the "
                                         r"2103 x 2103 x 2103 x 1 box of .*allowed: at most 4 GB"
                                         r" here .* use storage = 'sparse'"):

@@ -1,4 +1,4 @@
-"""The compiled leaf-level .vdb reader (``mitsuba_plugins._openvdb_bricks``, issue 27 item
+"""The compiled leaf-level .vdb reader (``mitsuba_plugins.grids._openvdb_bricks``, issue 27 item
 3) against the pyopenvdb worker, the reader proven since issue 13, on files as tools write
 them (item 5): Blosc-compressed (OpenVDB's default where it has Blosc, as Debian's has),
 half floats, active tiles at several tree levels, inactive voxels holding values,
@@ -12,21 +12,23 @@ import numpy as np
 import pytest
 
 from helpers import make_vdb
-from mitsuba_plugins import bricks, gridio, vdb
-from mitsuba_plugins.vdbfile import read_grid_list
+from mitsuba_plugins.grids import bricks
+from mitsuba_plugins.grids import vdb_openvdb
+from mitsuba_plugins.grids import gridio
+from mitsuba_plugins.grids.vdb_header import read_grid_list
 
 
 def test_the_leaf_reader_is_built():
     """.ci/setup installs libopenvdb-dev, so the install must have built it (a silent
     fallback to the worker would hide a broken build)."""
-    assert vdb.leaf_reader() is not None
+    assert vdb_openvdb.leaf_reader() is not None
 
 
 def _bricks(path, grid, monkeypatch, reader):
-    monkeypatch.setenv(vdb.READER_VARIABLE, reader)
+    monkeypatch.setenv(vdb_openvdb.READER_VARIABLE, reader)
     header = gridio.read_header(path, grid)
     builder = bricks.BrickBuilder(header.shape)
-    for row, cols, blocks in vdb.iter_vdb_bricks(header):
+    for row, cols, blocks in vdb_openvdb.iter_vdb_bricks(header):
         builder.add_row(row, cols, blocks)
     index, pool, maxima, minima = builder.finish()
     return header, index, pool, maxima
@@ -93,7 +95,7 @@ def test_leaf_reader_reads_the_values_written(studio, monkeypatch):
     """Beyond agreeing with the worker: the float grid's values come back exactly, the
     half-float grid's to half precision, tiles expanded, the inactive value kept."""
     path, values, colour = studio
-    monkeypatch.setenv(vdb.READER_VARIABLE, "extension")
+    monkeypatch.setenv(vdb_openvdb.READER_VARIABLE, "extension")
     for grid, expected, tol in (("density[0]", values, 0.0), ("smoke_half", values, 1e-3),
                                 ("Cd", colour, 0.0)):
         header = gridio.read_header(path, grid)
@@ -126,7 +128,7 @@ def test_each_compression_reads_the_same(tmp_path, monkeypatch, compression, cha
     values = rng.random((19, 23, 17, channels)).astype(np.float32) + 0.01
     values[3:9] = 0.0
     path = tmp_path / f"{compression}.vdb"
-    vdb.leaf_reader().write(str(path), "density", values if channels == 3 else values[..., 0],
+    vdb_openvdb.leaf_reader().write(str(path), "density", values if channels == 3 else values[..., 0],
                             (-5, 9, 3), 0.05, compression, half)
     index, pool = _same(path, "density", monkeypatch)
     header = gridio.read_header(path)
@@ -145,12 +147,12 @@ def test_the_compressions_are_real(tmp_path):
     size = {}
     for compression in ("none", "zip", "blosc"):
         path = tmp_path / f"{compression}.vdb"
-        vdb.leaf_reader().write(str(path), "density", values, (0, 0, 0), 0.1, compression)
+        vdb_openvdb.leaf_reader().write(str(path), "density", values, (0, 0, 0), 0.1, compression)
         size[compression] = path.stat().st_size
     assert size["zip"] < 0.5 * size["none"] and size["blosc"] < 0.5 * size["none"], size
 
 
 def test_a_wrong_reader_choice_is_named(monkeypatch):
-    monkeypatch.setenv(vdb.READER_VARIABLE, "fast")
+    monkeypatch.setenv(vdb_openvdb.READER_VARIABLE, "fast")
     with pytest.raises(ValueError, match="MITSUBA_PLUGINS_VDB_READER.*auto, extension, worker"):
-        vdb.leaf_reader()
+        vdb_openvdb.leaf_reader()

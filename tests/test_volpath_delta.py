@@ -23,7 +23,12 @@ from helpers import (SPARSE, assert_same_expectation, assert_same_render, cached
                      camera, emissive_slab, estimate, exact_optical_depth, grid, homogeneous,
                      load, loaded, media_scene, render, segment, spectra_of,
                      assert_slab_matches)
-from mitsuba_plugins import contract, estimators, flights, scene_media, spectra
+from mitsuba_plugins.tracking import scene_media
+from mitsuba_plugins.tracking import transmittance
+from mitsuba_plugins.tracking import trackers
+from mitsuba_plugins.tracking import free_flights
+from mitsuba_plugins.grids import spectra
+from mitsuba_plugins.tracking.homogeneous import homogeneous_free_flight
 from mitsuba_plugins.tools import stats
 
 DEPTH = 8
@@ -362,17 +367,17 @@ def random_grid(tmp_path_factory):
 
 
 def transmittance_samples(medium, method, n=1 << 16, seed=0):
-    tracker = contract.tracker_for(medium)
+    tracker = trackers.tracker_for(medium)
     ray, length = segment(n)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T = estimators.TRANSMITTANCE_ESTIMATORS[method].transmittance(
+    T = transmittance.TRANSMITTANCE_ESTIMATORS[method].transmittance(
         tracker, ray, mi.Float(length), sampler, mi.Bool(True))
     dr.eval(T)
     return np.array(T)
 
 
-@pytest.mark.parametrize("method", estimators.TRANSMITTANCE_ESTIMATORS)
+@pytest.mark.parametrize("method", transmittance.TRANSMITTANCE_ESTIMATORS)
 def test_transmittance_estimators_are_unbiased(random_grid, method):
     """Mean of 65536 estimates equals exp(-tau) per channel (t-test, alpha 1e-3)."""
     expected = np.exp(-exact_optical_depth(random_grid))
@@ -405,7 +410,7 @@ def test_homogeneous_free_flight_weights_are_finite_for_extreme_channels():
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(0, n)
         hero = _hero(sampler)
-        t, scattered, weight, r_u = estimators.homogeneous_free_flight(
+        t, scattered, weight, r_u = homogeneous_free_flight(
             sigma_t, mi.Float(1.0), sampler.next_1d(), True, hero, mi.Spectrum(1.0))
         w, r = np.array(weight), np.array(r_u)
         assert np.isfinite(w).all() and (w >= 0).all()
@@ -422,7 +427,7 @@ def test_homogeneous_free_flight_is_unbiased(t_max):
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(1, n)
         hero = _hero(sampler)
-        _, scattered, weight, _ = estimators.homogeneous_free_flight(
+        _, scattered, weight, _ = homogeneous_free_flight(
             spectrum, mi.Float(t_max), sampler.next_1d(), True, hero, mi.Spectrum(1.0))
         w = np.where(np.array(scattered), np.array(weight) * np.array(sigma)[:, None],
                      np.array(weight))
@@ -470,7 +475,7 @@ def test_tracking_code_is_traced_only_when_needed(monkeypatch):
 
     def spy(*args):
         rule = args[4]
-        if isinstance(rule, flights.DeltaTracking):
+        if isinstance(rule, free_flights.DeltaTracking):
             calls.append(rule.chromatic)
         return original(*args)
     monkeypatch.setattr(volpath_delta, "walk", spy)

@@ -24,7 +24,7 @@ import pytest
 from helpers import (assert_same_expectation, assert_same_render, cached_estimate, camera,
                      emissive_slab, estimate, grid, homogeneous, load, loaded, media_scene,
                      render, assert_slab_matches)
-from mitsuba_plugins import spectra
+from mitsuba_plugins.grids import spectra
 from mitsuba_plugins.tools import stats
 from mitsuba_plugins.params import PluginParameterError
 

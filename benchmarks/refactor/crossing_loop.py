@@ -27,7 +27,7 @@ import dense  # noqa: E402
 import dense_heldout  # noqa: E402
 import volpath_delta  # noqa: E402
 from mitsuba_plugins import instrument  # noqa: E402
-from mitsuba_plugins.scene_media import SceneMedia  # noqa: E402
+from mitsuba_plugins.tracking.scene_media import SceneMedia  # noqa: E402
 
 
 def scenes(sets, tmp: Path, res: int):

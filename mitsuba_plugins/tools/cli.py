@@ -52,7 +52,7 @@ def render_target(args) -> Path:
 def warn_if_ignored(scene, integrator_type: str, scene_path) -> None:
     """Say on stderr when the integrator leaves part of the scene out (a built-in on an
     emissive medium, a surface integrator on media)."""
-    from mitsuba_plugins.tools.compare import ignores
+    from mitsuba_plugins.tools.integrator_specs import ignores
     missing = ignores(scene, integrator_type)
     if missing:
         print(f"mitsuba-plugins: warning: this integrator ignores the {missing} of "
@@ -62,7 +62,7 @@ def warn_if_ignored(scene, integrator_type: str, scene_path) -> None:
 
 def cmd_render(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import parse_integrator, plugin_name
+    from mitsuba_plugins.tools.integrator_specs import parse_integrator, plugin_name
     from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.stats import timed_pass
     from mitsuba_plugins.validity import counted
@@ -87,7 +87,8 @@ def compare_folder(args) -> Path:
 
 def cmd_compare(args) -> int:
     from mitsuba_plugins.tools import report as rep
-    from mitsuba_plugins.tools.compare import compare, parse_integrator
+    from mitsuba_plugins.tools.compare import compare
+    from mitsuba_plugins.tools.integrator_specs import parse_integrator
     integrators = [parse_integrator(s) for s in args.integrators.split(",") if s.strip()]
     result = compare(args.scene, integrators, spp=args.spp, passes=args.passes,
                      time_budget=args.time_budget, spp_per_pass=args.spp_per_pass,
@@ -114,7 +115,7 @@ def reference_folder(args) -> Path:
 
 def cmd_reference(args) -> int:
     import mitsuba as mi
-    from mitsuba_plugins.tools.compare import parse_integrator
+    from mitsuba_plugins.tools.integrator_specs import parse_integrator
     from mitsuba_plugins.tools.scenes import load_scene
     from mitsuba_plugins.tools.reference import reference
     folder = reference_folder(args)
@@ -139,7 +140,7 @@ def cmd_reference(args) -> int:
 def cmd_grid_info(args) -> int:
     """Every file is reported, readable or not; the status is 1 if any is invalid or
     unreadable (each named on its own line)."""
-    from mitsuba_plugins.gridio import GridFileError
+    from mitsuba_plugins.grids.gridio import GridFileError
     from mitsuba_plugins.tools import grid_info
     invalid = 0
     for path in args.files:
@@ -163,7 +164,7 @@ def cmd_grid_info(args) -> int:
 
 
 def cmd_grid_convert(args) -> int:
-    from mitsuba_plugins import gridio
+    from mitsuba_plugins.grids import gridio
     gridio.convert(args.source, args.target, args.grid,
                    report=lambda line: print(line, flush=True))
     print(f"wrote {args.target}")
@@ -303,7 +304,7 @@ def check_options(args) -> None:
             raise OptionError(f"--time-budget = {budget} is invalid; allowed: a number of "
                               f"seconds in (0, {MAX_TIME_BUDGET:g}]")
         from mitsuba_plugins.tools import report as rep
-        from mitsuba_plugins.tools.compare import label, parse_integrator
+        from mitsuba_plugins.tools.integrator_specs import label, parse_integrator
         labels = [label(parse_integrator(s)) for s in args.integrators.split(",") if s.strip()]
         twice = sorted({name for name in labels if labels.count(name) > 1})
         if twice:

@@ -5,11 +5,11 @@ import os
 
 import numpy as np
 
-from mitsuba_plugins.gridio import iter_slabs, read_header, world_box
+from mitsuba_plugins.grids.gridio import iter_slabs, read_header, world_box
 
 
 def _vdb_grids(path) -> list:
-    from mitsuba_plugins.vdb import vdb_info
+    from mitsuba_plugins.grids.vdb_openvdb import vdb_info
     keys = ("name", "address", "type", "readable", "active_voxels", "index_min", "index_max",
             "min", "max")
     return [{k: g.get(k) for k in keys} | ({"reason": g["reason"]} if not g["readable"]
@@ -25,9 +25,9 @@ def grid_info(path, cells: int = 16, grid: str | None = None) -> dict:
     ``grid``: which grid of a ``.vdb`` to read (a name, or ``name[k]``). When not given
     (``density``) and the file has no single grid of that name, the summary lists the
     file's grids only (``grid`` None, ``note`` says why)."""
-    from mitsuba_plugins.bricks import SIDE, BrickBuilder
-    from mitsuba_plugins.gridio import GridFileError
-    from mitsuba_plugins.majorant import MajorantBuilder, resolution_for
+    from mitsuba_plugins.grids.bricks import SIDE, BrickBuilder
+    from mitsuba_plugins.grids.gridio import GridFileError
+    from mitsuba_plugins.grids.bounds import MajorantBuilder, resolution_for
     try:
         header = read_header(path, grid or "density")
     except GridFileError as error:

@@ -3,7 +3,7 @@
 :class:`PathIntegrator` parses the parameters every path tracer of ours shares, once
 (as Mitsuba's ``ADIntegrator`` does), and owns ``sample``; a plugin adds its own
 parameters in :meth:`PathIntegrator.configure` and its loop in :meth:`PathIntegrator.trace`.
-The volumetric integrators extend it in :mod:`mitsuba_plugins.volumes`.
+The volumetric integrators extend it in :mod:`mitsuba_plugins.volume_loop`.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import mitsuba as mi
 
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
-from mitsuba_plugins.surface import (EmitterSelection, RussianRoulette, emission_mis,
+from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
                                      emitter_contribution, sample_emitter)
 from mitsuba_plugins.validity import SampleGuard
 

@@ -8,7 +8,7 @@ is the closed-form integral of ``T(t) sigma_s`` over the cell. The only error is
 quadrature (midpoint) error of the optical depth, which shrinks with the step; it is
 measured in ``benchmarks/volpath_raymarch.py``.
 
-A march is the one walk (:func:`mitsuba_plugins.walk.walk`) with a cell iterator as
+A march is the one walk (:func:`mitsuba_plugins.tracking.walk.walk`) with a cell iterator as
 its segments and a rule that treats each cell whole: :class:`MarchedTransmittance`,
 :class:`MarchedFlight` and :class:`MarchedSingle`.
 
@@ -16,7 +16,7 @@ Cells (:class:`Marcher`):
 
 * ``fixed``: boundaries at ``t_in + (u + k) dt`` for a jitter ``u`` drawn per march, so
   the first cell is ``u dt`` long and the grid of cells is different for each ray.
-* ``majorant``: the majorant grid's segments (:class:`~mitsuba_plugins.dda.MajorantGrid`)
+* ``majorant``: the majorant grid's segments (:class:`~mitsuba_plugins.tracking.majorant_grid.MajorantGrid`)
   are cut into cells of ``dt = min(step_size, step_optical_depth / sigma_maj)``, so a
   cell's optical depth never exceeds ``step_optical_depth``; a segment whose majorant is
   0 (empty space) is one cell.
@@ -28,10 +28,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
-from mitsuba_plugins.estimators import FreeFlight, spectral_flight_weight
-from mitsuba_plugins.dda import DDAState
-from mitsuba_plugins.walk import walk
+from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
+from mitsuba_plugins.tracking.homogeneous import FreeFlight, spectral_flight_weight
+from mitsuba_plugins.tracking.majorant_grid import DDAState
+from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()
 
@@ -191,7 +191,7 @@ class Marcher:
     """How a march cuts rays into cells: ``mode`` in :data:`STEP_MODES`, ``step_size``
     in world units, ``step_optical_depth`` (``majorant`` mode) in mean free paths of
     the cell majorant. Built per render; the step values are opaque. A transmittance
-    estimator like those of :data:`mitsuba_plugins.estimators.TRANSMITTANCE_ESTIMATORS`."""
+    estimator like those of :data:`mitsuba_plugins.tracking.transmittance.TRANSMITTANCE_ESTIMATORS`."""
 
     def __init__(self, mode: str, step_size: float, step_optical_depth: float):
         self.mode = mode
@@ -270,7 +270,7 @@ class MarchedFlight(MarchRule):
     takes the albedo ``sigma_s / sigma_t`` (absorption as a weight rather than a coin
     flip: same expectation, less variance). Chromatic extinction: the hero channel's
     optical depth decides and
-    :func:`~mitsuba_plugins.estimators.spectral_flight_weight` weights the path over
+    :func:`~mitsuba_plugins.tracking.homogeneous.spectral_flight_weight` weights the path over
     channels, as in homogeneous media. With ``emission`` the medium's emission is
     collected at the collision (``beta sigma_a Le / sigma_t``, whose expectation is
     ``int T sigma_a Le dt``). The walk returns a :class:`FreeFlight`.

@@ -1,7 +1,7 @@
-"""Reads OpenVDB files for :mod:`mitsuba_plugins.vdb`; runs under the Python that has
+"""Reads OpenVDB files for :mod:`mitsuba_plugins.grids.vdb_openvdb`; runs under the Python that has
 OpenVDB's module (Debian's ``python3-openvdb``, built for Debian's own Python and numpy
 1.x), never inside the package's environment. It imports only pyopenvdb, numpy, the
-standard library and (by path) :mod:`mitsuba_plugins.bricks`.
+standard library and (by path) :mod:`mitsuba_plugins.grids.bricks`.
 
 Data leave on their own channel: the descriptor that was standard output when the
 worker started. Standard output itself is pointed at standard error first, so nothing
@@ -15,7 +15,7 @@ parent's thread that started it ends (Linux ``PR_SET_PDEATHSIG``), and exits at 
 the parent is already gone.
 
 A grid is selected by its *address*: its name, or ``name[k]`` for the k-th of several
-grids of one name (OpenVDB's own form, :mod:`mitsuba_plugins.vdbfile`).
+grids of one name (OpenVDB's own form, :mod:`mitsuba_plugins.grids.vdb_header`).
 
 ``info FILE ADDRESS... [norange]``: one JSON line describing each addressed grid (name,
 value type, class, background, active voxels, active index box, value range unless
@@ -28,7 +28,7 @@ raw little-endian float32, SLAB k-slices at a time, each slab C-ordered
 ``(k, j, i, channel)``; a slice larger than :data:`CHUNK_BYTES` is read in bands of j.
 
 ``bricks FILE ADDRESS I0 J0 K0 NX NY NZ``: the same box cut into the stored bricks of
-:mod:`mitsuba_plugins.bricks`, so that only they cross the pipe: per brick row (8
+:mod:`mitsuba_plugins.grids.bricks`, so that only they cross the pipe: per brick row (8
 k-slices and the apron slice) the little-endian int32 pair (row, n), n int32 ``by``, n
 int32 ``bx``, then n float32 blocks ``(SIDE, SIDE, SIDE, channel)``. Each row is read in
 tiles of at most :data:`CHUNK_BYTES` (the bricks of a tile plus their apron), never as a
@@ -201,7 +201,7 @@ def write(path, name, nx, ny, nz, channels, *matrix):
 
 
 def _bricks_module():
-    """mitsuba_plugins/bricks.py, loaded by path (the package itself needs Dr.Jit)."""
+    """mitsuba_plugins/grids/bricks.py, loaded by path (the package itself needs Dr.Jit)."""
     import importlib.util
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bricks.py")
     spec = importlib.util.spec_from_file_location("_mitsuba_plugins_bricks", path)

@@ -7,7 +7,7 @@ collision in a heterogeneous medium is, and what it weighs.
 * :class:`DecompositionTracking`: a second exponential clock for the control extinction
   (Kutz, Habel, Li and Novak 2017), a rule with a clock of its own.
 
-Both subclass :class:`mitsuba_plugins.estimators.NullCollisionRule`; they are listed by
+Both subclass :class:`mitsuba_plugins.tracking.null_collision.NullCollisionRule`; they are listed by
 name in :data:`FREE_FLIGHTS` (``volpath_delta``'s ``free_flight`` parameter). A new
 free-flight estimator is one rule class here, its entry in the table and its tests.
 """
@@ -16,9 +16,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import index_channel, medium_interaction
-from mitsuba_plugins.estimators import FreeFlight, NullCollisionRule
-from mitsuba_plugins.replay import attached
+from mitsuba_plugins.tracking.trackers import index_channel, medium_interaction
+from mitsuba_plugins.tracking.null_collision import NullCollisionRule
+from mitsuba_plugins.tracking.homogeneous import FreeFlight
+from mitsuba_plugins.tracking.replay import attached
 
 VARIANT = mi.variant()
 
@@ -77,10 +78,10 @@ class DeltaTracking(NullCollisionRule):
     (its expectation is ``int T sigma_a Le dt``; section 6's convention). The walk
     returns a :class:`FreeFlight`.
 
-    ``replay`` (a :class:`~mitsuba_plugins.replay.Replay`, gradients only) with
+    ``replay`` (a :class:`~mitsuba_plugins.tracking.replay.Replay`, gradients only) with
     ``remaining``, the radiance the path gathers from the flight's start on: each step
     and collision also propagates the derivative of its weight
-    (:mod:`mitsuba_plugins.replay`).
+    (:mod:`mitsuba_plugins.tracking.replay`).
     """
     label = "delta_tracking"
     budget = "beta"

@@ -2,7 +2,7 @@
 
 A :class:`MajorantGrid` covers a box, the unit cube of a grid's local frame, with
 ``R_x x R_y x R_z`` cells and stores for each cell an upper bound of the extinction
-``sigma_t`` anywhere in it (built by :mod:`mitsuba_plugins.majorant`).
+``sigma_t`` anywhere in it (built by :mod:`mitsuba_plugins.tracking.majorant`).
 :meth:`MajorantGrid.start` and :meth:`MajorantGrid.next_bounds` walk a ray through it (a
 3D DDA, Amanatides and Woo 1987; pbrt-v4's ``DDAMajorantIterator`` is the same idea) and
 return successive segments ``[t0, t1)`` with their majorant ``sigma_maj``. The segments

@@ -32,7 +32,7 @@ import struct
 import numpy as np
 
 # the header types live in gridheader (vdb.py uses them without importing this module)
-from mitsuba_plugins.gridheader import (GRID_CHANNELS, MAX_VALUES, MIN_RESOLUTION,  # noqa: F401
+from mitsuba_plugins.grids.gridheader import (GRID_CHANNELS, MAX_VALUES, MIN_RESOLUTION,  # noqa: F401
                                         GridFileError, GridHeader, check_regular_file,
                                         check_dense_size, check_shape as _check_shape, check_values,
                                         fail as _fail)
@@ -56,7 +56,7 @@ def read_header(path, grid: str = "density") -> GridHeader:
     if ext == ".npy":
         return _read_npy_header(path)
     if ext == ".vdb":
-        from mitsuba_plugins.vdb import read_vdb_header
+        from mitsuba_plugins.grids.vdb_openvdb import read_vdb_header
         return read_vdb_header(path, grid)
     _fail(path, f"unknown extension '{ext}'; allowed: .vol (Mitsuba binary grid), .npy "
                 "or .vdb (OpenVDB)")
@@ -128,7 +128,7 @@ def iter_slabs(header: GridHeader, slab_bytes: int = SLAB_BYTES):
     """
     z, y, x, c = header.shape
     if header.vdb_grid is not None:
-        from mitsuba_plugins.vdb import iter_vdb_slabs
+        from mitsuba_plugins.grids.vdb_openvdb import iter_vdb_slabs
         check_dense_size(header.path, header.shape)    # a .vdb's box may be any size
         yield from iter_vdb_slabs(header, slab_bytes)
         return
@@ -211,7 +211,7 @@ def world_box(header: GridHeader) -> tuple:
     if header.vdb_grid is None:
         lo, hi = header.bbox or ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
         return tuple(map(float, lo)), tuple(map(float, hi)), False
-    from mitsuba_plugins.vdb import grid_to_world
+    from mitsuba_plugins.grids.gridheader import grid_to_world
     matrix = grid_to_world(header)
     corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
     world = (matrix @ corners.T)[:3].T
@@ -236,7 +236,7 @@ def convert(source, target, grid: str = "density", report=print) -> dict:
     size = 4 * header.size
     lo, hi, rotated = world_box(header)
     if ext == ".vdb":
-        from mitsuba_plugins.vdb import write_vdb
+        from mitsuba_plugins.grids.vdb_openvdb import write_vdb
         name = re.sub(r"\[\d+\]$", "", grid)    # an address name[k] writes grid 'name'
         _check_no_grid_lost(target, name)
         report(f"{target}: grid {name!r}, {x} x {y} x {z} x {c} voxels, zeros left inactive")
@@ -265,7 +265,7 @@ def _check_no_grid_lost(target, name: str) -> None:
     """Refuse to replace an existing ``.vdb`` that holds a grid other than the one grid
     ``name`` the output holds (``grid convert f.vdb f.vdb`` dropped every other grid of
     the file without a word: issue 46)."""
-    from mitsuba_plugins.vdb import grid_list
+    from mitsuba_plugins.grids.vdb_openvdb import grid_list
     if not os.path.isfile(target):
         return
     try:

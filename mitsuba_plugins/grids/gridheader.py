@@ -1,6 +1,6 @@
 """What every grid-file reader shares: the error type, the header record, shape and value
-checks. Kept apart so that the format readers (:mod:`mitsuba_plugins.gridio` for ``.vol``
-/ ``.npy``, :mod:`mitsuba_plugins.vdb` for ``.vdb``) import it, not each other."""
+checks. Kept apart so that the format readers (:mod:`mitsuba_plugins.grids.gridio` for ``.vol``
+/ ``.npy``, :mod:`mitsuba_plugins.grids.vdb_openvdb` for ``.vdb``) import it, not each other."""
 from __future__ import annotations
 
 import dataclasses
@@ -31,7 +31,7 @@ class GridHeader:
     offset: int  # byte offset of the data
     dtype: np.dtype  # on-disk element type
     fortran_order: bool = False
-    vdb_grid: str | None = None  # .vdb: the grid read (mitsuba_plugins.vdb)
+    vdb_grid: str | None = None  # .vdb: the grid read (mitsuba_plugins.grids.vdb_openvdb)
     index_min: tuple | None = None  # .vdb: index of the box's first voxel
     index_to_world: tuple | None = None  # .vdb: the file's 4x4 index -> world matrix
 
@@ -117,3 +117,14 @@ def check_values(path, name: str, values: np.ndarray, lo: float = 0.0,
         vmax = float(values.max())
         if vmax > hi:
             fail(path, f"{name}: value {vmax:g} above {hi:g}; allowed: [{lo:g}, {hi:g}]")
+
+
+def grid_to_world(header) -> np.ndarray:
+    """4x4 map from the loaded box's unit cube (voxel ``x``'s centre at
+    ``(x + 1/2) / N``) to world space through the file's index-to-world transform."""
+    z, y, x, _ = header.shape
+    matrix = np.array(header.index_to_world, dtype=np.float64)
+    unit_to_index = np.diag([x, y, z, 1.0])
+    unit_to_index[:3, 3] = np.array(header.index_min, dtype=np.float64) - 0.5
+    return matrix @ unit_to_index
+

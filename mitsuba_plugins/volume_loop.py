@@ -4,7 +4,7 @@
 What happens while a ray crosses a medium is a *strategy* object handed to it
 (:class:`VolumeStrategy`): delta tracking (unbiased) or ray marching (biased) are two
 strategies, not two subclasses of one loop. :class:`VolumetricIntegrator` parses the
-shared parameters (via :class:`~mitsuba_plugins.paths.PathIntegrator`) and runs the
+shared parameters (via :class:`~mitsuba_plugins.path_loop.PathIntegrator`) and runs the
 surface loop in scenes without media.
 """
 from __future__ import annotations
@@ -12,14 +12,16 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins import equiangular
-from mitsuba_plugins.contract import Tracker, index_channel, medium_interaction
-from mitsuba_plugins.estimators import FreeFlight, homogeneous_free_flight, sample_exponential
+from mitsuba_plugins.tracking import equiangular
+from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
+from mitsuba_plugins.tracking.homogeneous import (FreeFlight, homogeneous_free_flight,
+                                                  sample_exponential)
 from mitsuba_plugins.params import depth_limit
-from mitsuba_plugins.paths import PathIntegrator
-from mitsuba_plugins.replay import replay_homogeneous, replay_vertex
-from mitsuba_plugins.scene_media import SceneMedia, shadow_transmittance
-from mitsuba_plugins.surface import EmitterSelection, emission_mis, emitter_contribution
+from mitsuba_plugins.path_loop import PathIntegrator
+from mitsuba_plugins.tracking.replay import replay_homogeneous, replay_vertex
+from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
+from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_contribution
 from mitsuba_plugins.instrument import count, settings
 
 VARIANT = mi.variant()
@@ -29,7 +31,7 @@ class VolumeContext:
     """What the medium phase of a path needs besides its loop state, for one render:
     the scene, its media, emitter selection, sampler, phase-function context, hero
     channel and shadow-ray transmittance estimator. A plain holder, never loop state.
-    In a gradient replay also the :class:`~mitsuba_plugins.replay.Replay` and, set at
+    In a gradient replay also the :class:`~mitsuba_plugins.tracking.replay.Replay` and, set at
     each vertex, ``remaining``: the radiance the path gathers from there on."""
 
     def __init__(self, scene, media, emitters, sampler, phase_ctx, hero, estimator,
@@ -142,7 +144,7 @@ class VolumetricIntegrator(PathIntegrator):
     is the medium phase; a scene without media runs the surface loop."""
     strategy: VolumeStrategy
     #: Threshold of the Russian roulette between a shadow ray's pieces (0: none; see
-    #: :meth:`mitsuba_plugins.scene_media.TransmittancePass.roulette`).
+    #: :meth:`mitsuba_plugins.tracking.shadow_rays.TransmittancePass.roulette`).
     shadow_roulette = 0.0
 
     def trace(self, scene, sampler, ray, medium, active):
@@ -158,11 +160,11 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                   medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None):
     """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
     real collision in a medium or a surface (null surfaces included). ``integrator``
-    supplies the settings (as in :func:`~mitsuba_plugins.paths.trace_surfaces`),
+    supplies the settings (as in :func:`~mitsuba_plugins.path_loop.trace_surfaces`),
     ``strategy`` the medium phase (:class:`VolumeStrategy`).
 
-    ``replay`` (:class:`~mitsuba_plugins.replay.Replay`): the same path again,
-    propagating derivatives (:mod:`mitsuba_plugins.replay`); returns ``(L, valid_ray,
+    ``replay`` (:class:`~mitsuba_plugins.tracking.replay.Replay`): the same path again,
+    propagating derivatives (:mod:`mitsuba_plugins.tracking.replay`); returns ``(L, valid_ray,
     tangent)``, the tangent being 0 in backward mode."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()

@@ -1,4 +1,4 @@
-"""Lookups in sparse brick storage (:mod:`mitsuba_plugins.bricks`) on the device.
+"""Lookups in sparse brick storage (:mod:`mitsuba_plugins.grids.bricks`) on the device.
 
 Same convention as a clamped ``mi.Texture3f`` over the grid's unit cube: voxel ``i`` of
 an axis of ``N`` voxels has its centre at ``(i + 1/2) / N``; trilinear lookups blend the
@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.bricks import BRICK, SIDE
+from mitsuba_plugins.grids.bricks import BRICK, SIDE
 
 #: pool elements moved to the device per scatter while loading
 UPLOAD_CHUNK = 1 << 22
@@ -165,7 +165,7 @@ class SparseGrid:
 
     def _read(self, element: mi.UInt32, active):
         """The voxel at pool element ``element``: ``Float``, ``Color3f``, or for another
-        channel count (4: an upsampled RGB voxel, mitsuba_plugins.spectra) a list."""
+        channel count (4: an upsampled RGB voxel, mitsuba_plugins.grids.spectra) a list."""
         if self.channels == 1:
             return dr.gather(mi.Float, self.pool, element, active)
         if self.channels == 3:

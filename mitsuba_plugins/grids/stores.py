@@ -1,12 +1,12 @@
 """Where a grid medium's values live: one store per kind, with one interface.
 
 * :class:`DenseStore`: one 3D texture of the loaded box (``storage = dense``);
-* :class:`SparseStore`: 8^3-voxel bricks in a pool (:mod:`mitsuba_plugins.sparse`);
-* :class:`VolumeStore`: a nested Mitsuba volume (``sigma_t`` without ``filename``).
+* :class:`SparseStore`: 8^3-voxel bricks in a pool (:mod:`mitsuba_plugins.grids.sparse`);
+* :class:`~mitsuba_plugins.grids.nested_volume.VolumeStore`: a nested Mitsuba volume (``sigma_t`` without ``filename``).
 
 A store answers three things: the grid's value at a point as a spectrum of the variant
 (:meth:`eval`; for a file grid before ``scale`` and the multiplier), the bounds a majorant
-is derived from (:meth:`bounds`, fed to :func:`mitsuba_plugins.majorant.derive`) and what
+is derived from (:meth:`bounds`, fed to :func:`mitsuba_plugins.tracking.majorant.derive`) and what
 it exposes to ``mi.traverse`` (:meth:`traverse`, :meth:`changed`). :func:`load` streams a
 grid file into a dense or sparse store, checking every value; nothing is kept if any
 check fails.
@@ -14,23 +14,23 @@ check fails.
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import bricks, gridio, placement
-from mitsuba_plugins.majorant import (MARGIN, ROUNDING, MajorantBuilder, ProductMajorantBuilder,
-                                      resolution_for, voxel_ranges)
+from mitsuba_plugins.grids import placement
+from mitsuba_plugins.grids import bricks
+from mitsuba_plugins.grids import gridio
+from mitsuba_plugins.grids.bounds import (MARGIN, ROUNDING, MajorantBuilder,
+                                          ProductMajorantBuilder, resolution_for,
+                                          voxel_ranges)
 from mitsuba_plugins.params import PluginParameterError
-from mitsuba_plugins.spectra import MODEL_CHANNELS, GridValues, model_range, probe_wavelengths
+from mitsuba_plugins.grids.spectra import GridValues
+from mitsuba_plugins.grids.value_checks import ValueCheck, check_dense_memory, checked_edit
 
 #: elements moved to device memory per scatter while loading (bounds the extra memory)
 UPLOAD_CHUNK = 1 << 18
-#: margin (local units) of majorant cells when a nested volume's transform is read
-#: back from its printed 6-digit matrix
-PARSED_TRANSFORM_MARGIN = 2e-3
 INTERPOLATIONS = {"trilinear": dr.FilterMode.Linear, "nearest": dr.FilterMode.Nearest}
 STORAGES = ("dense", "sparse", "auto")
 #: ``storage = auto`` keeps bricks when they take at most this fraction of the dense bytes
@@ -39,8 +39,6 @@ AUTO_SPARSE_FRACTION = 0.5
 #: from a dense copy, at most 64 MiB): at 48^3 the brick bounds (6^3 cells) made
 #: volpath_delta 1.43x slower on scenes/sparse.xml than the dense grid's 16^3
 EXACT_MAJORANT_VOXELS = 256 ** 3
-#: relative slack on a constant volume's largest value read at sampled wavelengths
-PROBE_SLACK = 1e-3
 
 
 @dataclasses.dataclass
@@ -66,7 +64,7 @@ def new_builder(stored_shape, values: GridValues, multiplier, cells: int,
                            margin)
 
 
-def _built(builder, to_local) -> Bounds:
+def built_bounds(builder, to_local) -> Bounds:
     return Bounds(builder.finish(), builder.finish_min(), float(np.float32(builder.max)),
                   to_local)
 
@@ -99,7 +97,7 @@ class DenseStore:
             data, self._host = self._host, None
             data = self.data.numpy() if data is None else data
             builder = new_builder(data.shape, self.values, multiplier, cells).add_all(data)
-        return _built(builder, self.to_local)
+        return built_bounds(builder, self.to_local)
 
     def traverse(self, callback) -> None:
         if not self.values.converted:
@@ -128,7 +126,7 @@ class DenseStore:
 
 
 class SparseStore:
-    """Bricks (:class:`~mitsuba_plugins.sparse.SparseGrid`) and their extrema. The stored
+    """Bricks (:class:`~mitsuba_plugins.grids.sparse.SparseGrid`) and their extrema. The stored
     bricks' values are exposed as ``bricks`` (which bricks exist stays fixed)."""
     kind = "sparse"
 
@@ -147,7 +145,7 @@ class SparseStore:
             c = self.grid.channels
             pool = self.grid.pool.numpy().reshape(-1, *(bricks.SIDE,) * 3, c)
             data = bricks.densify(index, pool, (*self.shape[:3], c))
-            return _built(new_builder(data.shape, self.values, multiplier, cells).add_all(data),
+            return built_bounds(new_builder(data.shape, self.values, multiplier, cells).add_all(data),
                           self.to_local)
         # Beyond: the bricks' extrema. At most one cell per brick; 16 by default as for
         # dense storage (on the 1024^3 cloud of benchmarks/sparse_scale.py 64 cells per
@@ -177,22 +175,6 @@ class SparseStore:
                 f"{self.grid.nbytes / 2**20:.1f} MiB)")
 
 
-def checked_edit(name: str, values: np.ndarray, restore, lo: float = 0.0) -> np.ndarray:
-    """``values`` of an edited grid parameter ``name``, every one finite and >= ``lo``;
-    where one is not, ``restore()`` puts the previous values back (``params`` then holds
-    what renders) and the error names the parameter and the allowed range."""
-    bad = int(np.count_nonzero(~np.isfinite(values)))
-    low = int(np.count_nonzero(values < lo)) if not bad else 0
-    if not (bad or low):
-        return values
-    restore()
-    what = f"{bad} non-finite value(s) (NaN or Inf)" if bad else \
-        f"{low} value(s) below {lo:g} (smallest {float(values.min()):g})"
-    raise PluginParameterError(
-        f"grid_medium: parameter '{name}' holds {what}; allowed: finite values >= {lo:g}. "
-        "The previous values are kept (in params too)")
-
-
 def synchronize(grid, name: str, keys) -> bool:
     """After an edit of a sparse grid's exposed bricks (parameter ``name``): the pool
     re-derived from the owning copies (:meth:`SparseGrid.synchronize`) and every value
@@ -214,83 +196,6 @@ def synchronize(grid, name: str, keys) -> bool:
     return True
 
 
-class VolumeStore:
-    """A nested Mitsuba volume: its own lookups; majorants from its data when it has a
-    grid (its transform read back from its printed matrix), else one cell."""
-    kind = "volume"
-
-    def __init__(self, volume: mi.Volume):
-        self.volume = volume
-
-    def eval(self, mei: mi.MediumInteraction3f, active):
-        return self.volume.eval(mei, active)
-
-    def bounds(self, multiplier, cells: int, path) -> Bounds:
-        data, to_local = placement.volume_grid(self.volume)
-        if data is None:
-            # A constant (or procedural) volume: one cell over its bounding box. Its
-            # minorant is a constant's smallest channel (the largest, once, let
-            # decomposition tracking's control exceed a chromatic extinction: the green
-            # of (1, 0.2, 1) rendered 10% dark), 0 for any other volume.
-            top = np.float32(volume_max(self.volume))
-            cell = np.full((1, 1, 1), top, np.float32)
-            low = np.full((1, 1, 1), constant_min(self.volume), np.float32)
-            return Bounds(cell, low, float(top), placement.bbox_to_local(self.volume.bbox()))
-        # Mitsuba's volume holds RGB (evaluated as luminance in mono) or, in spectral
-        # variants, the upsampled model (4 channels) already
-        values = GridValues(3 if data.shape[3] == MODEL_CHANNELS else data.shape[3])
-        if values.gray_only:
-            data = values.convert(data)
-        builder = new_builder(data.shape, values, multiplier, cells, PARSED_TRANSFORM_MARGIN)
-        bounds = _built(builder.add_all(data), to_local)
-        # heterogeneous's majorant is scale * volume.max(); keep it bit for bit
-        bounds.grid_max = float(np.float32(self.volume.max()))
-        return bounds
-
-    def traverse(self, callback) -> None:
-        callback.put("sigma_t", self.volume, mi.ParamFlags.Differentiable)
-
-    def changed(self, keys=None) -> None:
-        check_volume_range("grid_medium", "sigma_t", self.volume, 0.0, None)
-
-    def describe(self) -> str:
-        return ""
-
-
-# -- loading a grid file ------------------------------------------------------------------
-#: negative values down to -TINY_NEGATIVE are taken as float noise of simulation output
-#: (one voxel of -1e-6 made a grid unusable): set to 0, with one warning per grid that
-#: says how many; more negative values are refused
-TINY_NEGATIVE = 1e-4
-
-
-class ValueCheck:
-    """Checks the values of one grid as they stream in (finite, >= ``lo``), setting
-    tiny negatives to 0 where ``lo`` is 0; :meth:`report` warns once how many were."""
-
-    def __init__(self, path, what: str, lo: float = 0.0):
-        self.path, self.what, self.lo = path, what, lo
-        self.clamped, self.smallest = 0, 0.0
-
-    def __call__(self, values: np.ndarray) -> np.ndarray:
-        if self.lo == 0.0 and values.size:
-            tiny = (values < 0) & (values >= -TINY_NEGATIVE)
-            n = int(np.count_nonzero(tiny))
-            if n:
-                self.clamped += n
-                self.smallest = min(self.smallest, float(values[tiny].min()))
-                values = np.where(tiny, np.float32(0), values)
-        gridio.check_values(self.path, self.what, values, self.lo)
-        return values
-
-    def report(self) -> None:
-        if self.clamped:
-            import warnings
-            warnings.warn(f"grid_medium: grid file '{self.path}': {self.what}: "
-                          f"{self.clamped} value(s) in [-{TINY_NEGATIVE:g}, 0) (smallest "
-                          f"{self.smallest:g}) set to 0", stacklevel=2)
-
-
 def load(header, storage: str, interpolation: str, to_local, multiplier, cells: int):
     """A dense or sparse store of the grid file of ``header`` (``storage`` ``auto``:
     sparse when that takes at most half the dense bytes), every value checked."""
@@ -299,7 +204,7 @@ def load(header, storage: str, interpolation: str, to_local, multiplier, cells: 
     if storage == "dense":
         data, builder = _stream_dense(header, values, stored, multiplier, cells)
         return DenseStore(data, values, header.shape, to_local, interpolation, builder)
-    from mitsuba_plugins.sparse import SparseGrid
+    from mitsuba_plugins.grids.sparse import SparseGrid
     builder = read_bricks(header, "density", values)
     index = builder.index
     maxima, minima = builder.extrema()
@@ -314,33 +219,6 @@ def load(header, storage: str, interpolation: str, to_local, multiplier, cells: 
     grid = SparseGrid(stored, index, builder.pool_chunks(), builder.stored)
     return SparseStore(grid, values, header.shape, to_local, interpolation,
                        (maxima, minima, index))
-
-
-#: largest share of this machine's memory that dense storage may take
-DENSE_MEMORY_SHARE = 0.25
-
-
-def machine_memory() -> int:
-    """Bytes of physical memory of this machine (0 where unknown)."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 0
-
-
-def check_dense_memory(header, stored) -> None:
-    """Refuse dense storage that would take over :data:`DENSE_MEMORY_SHARE` of this
-    machine's memory (two voxels of a .vdb spanning a 1203^3 box allocated ~7 GB without a
-    word), saying the size and the fix."""
-    nbytes = 4 * int(np.prod(stored))
-    limit = DENSE_MEMORY_SHARE * machine_memory()
-    if limit and nbytes > limit:
-        z, y, x, c = stored
-        raise PluginParameterError(
-            f"grid_medium: storage = 'dense' would allocate {nbytes / 1e9:.3g} GB for the "
-            f"{x} x {y} x {z} x {c} box of '{header.path}'; allowed: at most "
-            f"{limit / 1e9:.3g} GB here ({DENSE_MEMORY_SHARE:g} of this machine's memory); use "
-            "storage = 'sparse' (or 'auto'), which holds only the bricks with values")
 
 
 def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
@@ -366,7 +244,7 @@ def _stream_dense(header, values: GridValues, stored, multiplier, cells: int):
 
 def read_bricks(header, what: str, values: GridValues,
                 lo: float = 0.0) -> bricks.BrickBuilder:
-    """A filled :class:`~mitsuba_plugins.bricks.BrickBuilder` of a grid file, every value
+    """A filled :class:`~mitsuba_plugins.grids.bricks.BrickBuilder` of a grid file, every value
     checked (:class:`ValueCheck`: finite, >= ``lo``; ``what`` names the data in errors)
     and stored as ``values`` says (a brick's extrema are then those of the majorant factors of upsampled RGB).
     For a .vdb the OpenVDB worker cuts the bricks and only stored ones cross the pipe (a
@@ -375,7 +253,7 @@ def read_bricks(header, what: str, values: GridValues,
                                   bounds=values.factors if values.upsampled else None)
     check = ValueCheck(header.path, what, lo)
     if header.vdb_grid is not None:
-        from mitsuba_plugins.vdb import iter_vdb_bricks
+        from mitsuba_plugins.grids.vdb_openvdb import iter_vdb_bricks
         for row, cols, blocks in iter_vdb_bricks(header):
             builder.add_row(row, cols, values.convert(check(blocks)))
     else:
@@ -391,7 +269,7 @@ def load_side_grid(path: str, name: str, to_world: mi.ScalarTransform4f,
     """``(SparseGrid, GridValues, world -> local)`` of grid ``name`` of a .vdb (values
     finite and >= ``lo``), the grid that ``grid_medium``'s ``parameter`` names (its
     errors say so), of ``channels`` channels in the file."""
-    from mitsuba_plugins.sparse import SparseGrid
+    from mitsuba_plugins.grids.sparse import SparseGrid
     header = gridio.read_header(path, name)
     if header.channels not in channels:
         raise PluginParameterError(
@@ -408,8 +286,8 @@ def load_side_grid(path: str, name: str, to_world: mi.ScalarTransform4f,
 # -- lookups ---------------------------------------------------------------------------------
 def grid_value(grid, values: GridValues, p: mi.Point3f, trilinear: bool, wavelengths,
                active) -> mi.UnpolarizedSpectrum:
-    """The value of a sparse grid (:class:`~mitsuba_plugins.sparse.SparseGrid`) at local
-    point ``p`` as a spectrum (upsampled RGB: Mitsuba's blend, mitsuba_plugins.spectra)."""
+    """The value of a sparse grid (:class:`~mitsuba_plugins.grids.sparse.SparseGrid`) at local
+    point ``p`` as a spectrum (upsampled RGB: Mitsuba's blend, mitsuba_plugins.grids.spectra)."""
     if values.upsampled:
         if trilinear:
             corners, f = grid.fetch(p, active)
@@ -426,84 +304,4 @@ def cell_position(p: mi.Point3f, shape) -> mi.Vector3f:
     q = dr.fma(p, mi.Vector3f(x, y, z), -0.5)
     return q - dr.floor(q)
 
-
-# -- nested volumes -------------------------------------------------------------------------
-def probe_volume(volume: mi.Volume, n: int, p=None) -> np.ndarray:
-    """``volume`` evaluated on ``n`` lanes at points ``p`` (default: its box's centre),
-    at wavelengths spread over the visible range in spectral variants: (channels, n)."""
-    it = dr.zeros(mi.Interaction3f, n)
-    if mi.is_spectral:
-        it.wavelengths = probe_wavelengths(n)
-    it.p = mi.Point3f(volume.bbox().center()) if p is None else p
-    return np.atleast_2d(np.asarray(mi.unpolarized_spectrum(volume.eval(it))))
-
-
-def volume_max(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
-    """A bound of a volume without grid data: Mitsuba's ``max()``, and in spectral
-    variants also the largest value over the visible range (Mitsuba's ``max()`` of an
-    upsampled rgb constant is not one: 0.84 for (1, 0.2, 1), whose spectrum reaches
-    0.9998), read at the centre of its box, times ``1 + slack`` (a majorant's margin; 0
-    for a range check: an albedo of 1 upsamples to at most 1.0 exactly)."""
-    vmax = float(volume.max())
-    if mi.is_spectral:
-        vmax = max(vmax, float(probe_volume(volume, 256).max()) * (1 + slack))
-    return vmax
-
-
-#: random points (times the probe wavelengths) at which a volume without grid data is
-#: checked for differing channels
-CHANNEL_PROBES = 4096
-
-
-def volume_channels(volume: mi.Volume) -> int:
-    """3 where a nested volume's values can differ between channels, else 1.
-
-    ``Volume.channel_count()`` is not enough: a ``constvolume`` reports 0 in every variant
-    (an rgb constant too), and a ``gridvolume`` of RGB data 0 in spectral variants, where
-    it holds the upsampled model. Treated as gray, a chromatic extinction rendered wrong
-    silently. A grid's data say it; a volume without data is evaluated at random points
-    of its box (and at wavelengths over the visible range in spectral variants), exact
-    for a constant; a procedural volume gray at every probe counts as gray."""
-    count = volume.channel_count()
-    if count in (1, 3):
-        return count
-    data, _ = placement.volume_grid(volume, need_transform=False)
-    if data is not None:
-        return 3 if data.shape[3] in (3, MODEL_CHANNELS) else 1
-    box = volume.bbox()
-    lo, hi = np.array(box.min, np.float64), np.array(box.max, np.float64)
-    lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
-    u = np.random.default_rng(0).random((3, CHANNEL_PROBES))
-    values = probe_volume(volume, CHANNEL_PROBES, mi.Point3f(
-        *[mi.Float((lo[k] + u[k] * (hi[k] - lo[k])).astype(np.float32)) for k in range(3)]))
-    return 3 if np.any(values.max(axis=0) != values.min(axis=0)) else 1
-
-
-def constant_min(volume: mi.Volume, slack: float = PROBE_SLACK) -> float:
-    """A lower bound of a ``constvolume``: its smallest channel (over the visible range in
-    spectral variants, probed as :func:`volume_max` does) times ``1 - slack``; 0 for any
-    other volume, whose values are not known everywhere."""
-    if volume.class_name() != "ConstVolume":
-        return 0.0
-    return max(float(probe_volume(volume, 256).min()) * (1 - slack), 0.0)
-
-
-def check_volume_range(plugin: str, name: str, volume: mi.Volume, lo: float,
-                       hi: float | None) -> None:
-    """Every value of a volume parameter in [lo, hi]: a grid volume voxel by voxel (over
-    the wavelengths of its upsampled RGB in spectral variants), another by its bound."""
-    data, _ = placement.volume_grid(volume, need_transform=False)
-    if data is not None:
-        if mi.is_spectral and data.shape[3] == MODEL_CHANNELS:
-            # Mitsuba's upsampled RGB: check the values it takes over the wavelengths
-            gridio.check_values(f"<{name} volume>", name, data, -np.inf)   # finite
-            s_min, s_max = model_range(data)
-            data = np.stack([s_min * data[..., 3], s_max * data[..., 3]], axis=-1)
-        gridio.check_values(f"<{name} volume>", name, data, lo, hi)
-        return
-    vmax = volume_max(volume, slack=0.0)
-    if not np.isfinite(vmax) or (hi is not None and vmax > hi):
-        raise PluginParameterError(
-            f"{plugin}: parameter '{name}' has maximum {vmax:g}; allowed: values in "
-            f"[{lo:g}, {'inf' if hi is None else f'{hi:g}'}]")
 

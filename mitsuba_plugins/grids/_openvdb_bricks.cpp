@@ -1,7 +1,7 @@
 // Leaf-level .vdb reader: cuts one grid of a .vdb straight into the bricks of
-// mitsuba_plugins/bricks.py, walking OpenVDB's leaf nodes and active tiles (never a
+// mitsuba_plugins/grids/bricks.py, walking OpenVDB's leaf nodes and active tiles (never a
 // dense box). Built by pip against Debian's libopenvdb-dev when it is there
-// (setup.py: optional); mitsuba_plugins/vdb.py falls back to the pyopenvdb worker
+// (setup.py: optional); mitsuba_plugins/grids/vdb_openvdb.py falls back to the pyopenvdb worker
 // process otherwise. The result equals the worker's (tests/test_vdb_files.py).
 //
 // info(path, address) -> dict: what the worker's info reports, without min / max; the grid
@@ -235,7 +235,7 @@ py::object background(const openvdb::GridBase::Ptr &base) {
     return g ? listed(g->background()) : py::none();
 }
 
-// What mitsuba_plugins._vdb_worker's info() reports without the value range; the grid
+// What mitsuba_plugins.grids._vdb_worker's info() reports without the value range; the grid
 // stays in memory for the next bricks() call on it.
 py::dict info(const std::string &path, const std::string &address) {
     openvdb::GridBase::Ptr grid = read_grid(path, address);
@@ -355,7 +355,7 @@ void write_grid(const std::string &path, const std::string &name,
 }  // namespace
 
 PYBIND11_MODULE(_openvdb_bricks, m) {
-    m.doc() = "Leaf-level .vdb reader: one grid cut into mitsuba_plugins.bricks' bricks";
+    m.doc() = "Leaf-level .vdb reader: one grid cut into mitsuba_plugins.grids.bricks' bricks";
     m.attr("BRICK") = BRICK;
     m.attr("SIDE") = SIDE;
     m.def("info", &info, py::arg("path"), py::arg("address"));

@@ -4,15 +4,15 @@
 :func:`walk` is the only loop over a medium's stretch of a ray. It asks a *segment
 iterator* for pieces of the ray and hands each to a *rule*, which decides what happens
 in it: sample tentative collisions against the piece's majorant (free flight, ratio /
-residual / track-length transmittance: :mod:`mitsuba_plugins.estimators`) or treat the
-piece as one cell of a march (:mod:`mitsuba_plugins.marching`).
+residual / track-length transmittance: :mod:`mitsuba_plugins.tracking.transmittance`) or treat the
+piece as one cell of a march (:mod:`mitsuba_plugins.tracking.marching`).
 
 Segment iterators (``start`` / ``next``):
 
 * :class:`MajorantSegments`: the cells of the medium's majorant grid along the ray
   (a Mitsuba medium is one segment with the global majorant, as in pbrt), hot ones cut
   into refined pieces (:func:`refined_piece`);
-* the march cells of :class:`mitsuba_plugins.marching.Marcher`.
+* the march cells of :class:`mitsuba_plugins.tracking.marching.Marcher`.
 
 An iterator's state carries ``t_end`` (end of the current piece), and for majorant
 segments ``sigma_maj`` and ``sigma_min`` (bounds of the extinction on it). A rule
@@ -33,7 +33,7 @@ offers:
   an event; the random numbers drawn and the images are the same as without it.
 
 Homogeneous media never reach a walk: their flights and transmittance are analytic
-(:mod:`mitsuba_plugins.estimators`), so a scene without heterogeneous media traces no
+(:mod:`mitsuba_plugins.tracking.transmittance`), so a scene without heterogeneous media traces no
 loop at all.
 """
 from __future__ import annotations
@@ -42,7 +42,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins import instrument
-from mitsuba_plugins.dda import DDAState
+from mitsuba_plugins.tracking.majorant_grid import DDAState
 
 VARIANT = mi.variant()
 
@@ -55,7 +55,7 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 #: inner loop of :func:`walk` are bounded by the majorant grid's cells) one walk may take
 #: before every further one is survived only with probability WORK_SURVIVAL (Russian
 #: roulette, unbiased: the weight of a survivor is divided by it). Traced only for a medium that can have hot segments
-#: (:attr:`mitsuba_plugins.contract.Tracker.hot`): elsewhere every segment holds at most ~256 tentative
+#: (:attr:`mitsuba_plugins.tracking.trackers.Tracker.hot`): elsewhere every segment holds at most ~256 tentative
 #: collisions and a crossing visits at most Rx + Ry + Rz + 3 segments, so the work is
 #: bounded already, and the budget's counter and masked draw would cost 4-6% there
 #: (measured on smoke, sparse and chromatic). Media that grid_medium accepts (voxel

@@ -24,10 +24,28 @@ def vdb_to_world(header, to_world: mi.ScalarTransform4f) -> mi.ScalarTransform4f
     """Unit cube of a .vdb grid's loaded box -> world (OpenVDB placement): the file's
     index-to-world transform, then ``to_world``; composed and inverted in double
     precision, float32 only at the end."""
-    from mitsuba_plugins.vdb import grid_to_world
+    from mitsuba_plugins.grids.gridheader import grid_to_world
     matrix = np.array(to_world.matrix, dtype=np.float64) @ grid_to_world(header)
     return mi.ScalarTransform4f(dr.scalar.Matrix4f(matrix.astype(np.float32)),
                                 dr.scalar.Matrix4f(np.linalg.inv(matrix).T.astype(np.float32)))
+
+
+def grid_to_local(header, to_world: mi.ScalarTransform4f, use_grid_bbox: bool,
+                  filename: str) -> mi.ScalarTransform4f:
+    """World -> the unit cube of a grid file's loaded box: ``to_world`` after the file's
+    own placement (a ``.vdb``'s index-to-world transform; with ``use_grid_bbox`` a
+    ``.vol`` header's bounding box)."""
+    if header.index_to_world is not None:
+        to_world = vdb_to_world(header, to_world)
+    to_local = to_world.inverse()
+    if use_grid_bbox:
+        if header.bbox is None:
+            raise PluginParameterError(
+                f"grid_medium: parameter 'use_grid_bbox' needs a .vol file (with a "
+                f"bounding box in its header); '{filename}' has none")
+        lo, hi = (np.asarray(v, dtype=np.float32) for v in header.bbox)
+        to_local = mi.ScalarTransform4f().scale(1.0 / (hi - lo)).translate(-lo) @ to_local
+    return to_local
 
 
 def check_invertible(value) -> None:

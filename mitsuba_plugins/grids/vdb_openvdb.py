@@ -3,7 +3,7 @@
 OpenVDB's Python module is Debian's ``python3-openvdb`` (OpenVDB 10, module
 ``pyopenvdb``): it is not on PyPI and is built against Debian's Python and numpy 1.x,
 so in an environment with numpy 2 (or another Python build) it cannot be imported. The
-file is therefore read by a worker process (:mod:`mitsuba_plugins._vdb_worker`) run with
+file is therefore read by a worker process (:mod:`mitsuba_plugins.grids._vdb_worker`) run with
 the Python that has the module (``/usr/bin/python3``, or ``MITSUBA_PLUGINS_VDB_PYTHON``),
 which streams the grid's values back through a pipe, slab by slab. The package's own
 environment needs no pin, and ``.vol`` / ``.npy`` never touch OpenVDB. Chose this over
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins.gridheader import GridHeader, check_shape
-from mitsuba_plugins.gridheader import fail as _fail
+from mitsuba_plugins.grids.gridheader import GridHeader, check_shape
+from mitsuba_plugins.grids.gridheader import fail as _fail
 
 WORKER = Path(__file__).with_name("_vdb_worker.py")
 #: where OpenVDB's Python module is looked for (the variable, if set, alone)
@@ -168,10 +168,10 @@ class _Worker:
 
 
 def grid_list(path) -> list:
-    """The grids of ``path`` as :class:`~mitsuba_plugins.vdbfile.GridEntry` (read from the
+    """The grids of ``path`` as :class:`~mitsuba_plugins.grids.vdb_header.GridEntry` (read from the
     header, without OpenVDB)."""
-    from mitsuba_plugins.gridheader import check_regular_file
-    from mitsuba_plugins.vdbfile import VdbHeaderError, read_grid_list
+    from mitsuba_plugins.grids.gridheader import check_regular_file
+    from mitsuba_plugins.grids.vdb_header import VdbHeaderError, read_grid_list
     check_regular_file(path)       # a FIFO would block the header read forever
     if leaf_reader() is None:
         openvdb_python(path)       # reading a .vdb needs it: say so first
@@ -191,7 +191,7 @@ def _unsupported(entry) -> str | None:
 def vdb_info(path, value_range: bool = True, addresses=None) -> list:
     """Grids of ``path`` (every one, or those ``addresses`` name), in file order: dicts
     with ``name``, ``address`` (the name, or ``name[k]`` when several grids share it),
-    ``type``, and, for grids of a readable type, what :mod:`mitsuba_plugins._vdb_worker`
+    ``type``, and, for grids of a readable type, what :mod:`mitsuba_plugins.grids._vdb_worker`
     reports (``readable`` true); a grid of another type has ``readable`` false and
     ``reason``. Without ``value_range`` ``min``/``max`` are None (reading them costs a
     pass over every value)."""
@@ -220,10 +220,10 @@ def vdb_info(path, value_range: bool = True, addresses=None) -> list:
 
 
 def read_vdb_header(path, grid: str):
-    """A :class:`~mitsuba_plugins.gridheader.GridHeader` for the grid ``grid`` addresses in
+    """A :class:`~mitsuba_plugins.grids.gridheader.GridHeader` for the grid ``grid`` addresses in
     ``path`` (a unique name or ``name[k]``): its active box grown by :data:`PAD` voxels,
     refusing what cannot be placed or stored."""
-    from mitsuba_plugins.vdbfile import select as select_grid
+    from mitsuba_plugins.grids.vdb_header import select as select_grid
     try:
         entry = select_grid(grid_list(path), grid)
     except LookupError as error:
@@ -301,7 +301,7 @@ READER_VARIABLE = "MITSUBA_PLUGINS_VDB_READER"
 
 
 def leaf_reader():
-    """The compiled leaf-level reader (``mitsuba_plugins._openvdb_bricks``, built at install
+    """The compiled leaf-level reader (``mitsuba_plugins.grids._openvdb_bricks``, built at install
     where Debian's libopenvdb-dev is present), or None where it is absent or
     ``$MITSUBA_PLUGINS_VDB_READER`` is ``worker``."""
     choice = os.environ.get(READER_VARIABLE, "auto")
@@ -310,11 +310,11 @@ def leaf_reader():
     if choice == "worker":
         return None
     try:
-        from mitsuba_plugins import _openvdb_bricks
+        from mitsuba_plugins.grids import _openvdb_bricks
     except ImportError as error:
         if choice == "extension":
             raise ImportError(
-                f"${READER_VARIABLE}=extension, but mitsuba_plugins._openvdb_bricks is not "
+                f"${READER_VARIABLE}=extension, but mitsuba_plugins.grids._openvdb_bricks is not "
                 f"built ({error}): apt-get install -y libopenvdb-dev libboost-dev g++, then "
                 "reinstall the package") from error
         return None
@@ -323,7 +323,7 @@ def leaf_reader():
 
 def iter_vdb_bricks(header):
     """Yield ``(row, (by, bx), blocks)``: the stored bricks of each brick row of the
-    header's box (:mod:`mitsuba_plugins.bricks`). Cut by the compiled leaf-level reader
+    header's box (:mod:`mitsuba_plugins.grids.bricks`). Cut by the compiled leaf-level reader
     (:func:`leaf_reader`) from OpenVDB's leaf nodes and tiles where it is built, else by
     the worker in tiles (it never holds a whole row of the box; only stored bricks cross
     the pipe). Both give the same bricks (tests/test_vdb_reader.py)."""
@@ -331,7 +331,7 @@ def iter_vdb_bricks(header):
     if reader is not None:
         yield from _leaf_bricks(reader, header)
         return
-    from mitsuba_plugins.bricks import BRICK, SIDE
+    from mitsuba_plugins.grids.bricks import BRICK, SIDE
     z, _, _, c = header.shape
     with _reader(header, "bricks") as read:
         for expected in range(-(-z // BRICK)):
@@ -356,7 +356,7 @@ def _in_process(path, grid: str, call, *args):
 
 
 def _leaf_bricks(reader, header):
-    from mitsuba_plugins.bricks import BRICK
+    from mitsuba_plugins.grids.bricks import BRICK
     z, y, x, c = header.shape
     i0, j0, k0 = header.index_min
     coords, blocks = _in_process(header.path, header.vdb_grid, reader.bricks,
@@ -389,14 +389,4 @@ def write_vdb(path, name: str, shape, index_to_world: np.ndarray, slabs) -> None
             _fail(path, "writing failed (" + worker.reason("no message") + ")")
     finally:
         worker.close()
-
-
-def grid_to_world(header) -> np.ndarray:
-    """4x4 map from the loaded box's unit cube (voxel ``x``'s centre at
-    ``(x + 1/2) / N``) to world space through the file's index-to-world transform."""
-    z, y, x, _ = header.shape
-    matrix = np.array(header.index_to_world, dtype=np.float64)
-    unit_to_index = np.diag([x, y, z, 1.0])
-    unit_to_index[:3, 3] = np.array(header.index_min, dtype=np.float64) - 0.5
-    return matrix @ unit_to_index
 

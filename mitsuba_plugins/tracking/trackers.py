@@ -1,8 +1,10 @@
-"""The medium contract: what our integrators ask of a medium (docs/architecture.md rule 2).
+"""Trackers: the adapters through which the walks (:mod:`mitsuba_plugins.tracking.walk`) see any
+heterogeneous medium (docs/architecture.md rule 2).
 
-* :class:`TrackedMedium`: the protocol a medium of ours offers (``grid_medium``);
-* :class:`Tracker` (:func:`tracker_for`): the adapters through which the walks
-  (:mod:`mitsuba_plugins.walk`) see any heterogeneous medium, ours or Mitsuba's;
+* :class:`Tracker` (:func:`tracker_for`): :class:`GridTracker` for a medium that offers
+  :class:`~mitsuba_plugins.tracking.medium_protocol.TrackedMedium` (``grid_medium``),
+  :class:`MitsubaTracker` for any other (one global majorant, checked by
+  :func:`checked_majorant`);
 * :func:`medium_interaction`: the interaction at a point of a ray, for lookups.
 
 Distances are ray parameters ``t``; rays handed to a tracker have unit direction, so
@@ -10,15 +12,16 @@ Distances are ray parameters ``t``; rays handed to a tracker have unit direction
 """
 from __future__ import annotations
 
-from typing import Optional, Protocol
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins import instrument, majorant
-from mitsuba_plugins.dda import MajorantGrid
-from mitsuba_plugins.spectra import probe_wavelengths
+from mitsuba_plugins import instrument
+from mitsuba_plugins.tracking import majorant
+from mitsuba_plugins.tracking.majorant_grid import MajorantGrid
+from mitsuba_plugins.grids.spectra import probe_wavelengths
+from mitsuba_plugins.tracking.medium_protocol import MediumProperties
 
 VARIANT = mi.variant()
 #: Fewest majorant cells along the grid's finest axis at which the walk crosses event-free
@@ -29,52 +32,9 @@ VARIANT = mi.variant()
 TIGHT_LOOP_CELLS = 8
 
 
-class TrackedMedium(Protocol):
-    """The contract between a medium and our integrators' walks.
-
-    A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
-
-    * ``majorant_grid``: a :class:`~mitsuba_plugins.dda.MajorantGrid` whose segments
-      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py), and
-      ``march_grid``, one as tight as the medium has (it may equal ``majorant_grid``),
-      for marches in ``majorant`` step mode;
-    * ``refinement``: ``(voxels per local unit, trilinear)`` when a segment can be hot
-      (see :func:`mitsuba_plugins.walk.refined_piece`), else None;
-    * ``eval_sigma_t(mei, active)``, ``eval_albedo(mei, active)`` and
-      ``get_radiance(mei, active)`` (``Le``; 0 without emission), per channel;
-    * ``has_emission``, ``is_chromatic`` (extinction differs between channels),
-      ``bbox`` (world bounds) and ``control_scale`` (the factor that makes the grid's
-      gray minorant a lower bound of every channel), plus Mitsuba's ``intersect_aabb``.
-
-    Any other medium (Mitsuba's ``heterogeneous``) is tracked through Mitsuba's own
-    interface alone: one global majorant and ``get_scattering_coefficients``.
-    """
-    PROVIDES_TRACKING: bool
-    majorant_grid: MajorantGrid
-    march_grid: MajorantGrid
-    refinement: Optional[tuple]
-    has_emission: bool
-    is_chromatic: bool
-
-    def eval_sigma_t(self, mei, active): ...
-
-    def eval_albedo(self, mei, active): ...
-
-    def get_radiance(self, mei, active): ...
-
-
 def diagonal(bbox) -> float:
     """Length of a bounding box's diagonal."""
     return float(np.linalg.norm(np.array(bbox.max) - np.array(bbox.min)))
-
-
-class MediumProperties:
-    """What a medium is at a point (pbrt-v4's ``MediumProperties``): extinction,
-    scattering and emitted radiance ``Le`` (0 without emission), per channel."""
-    DRJIT_STRUCT = {"sigma_t": mi.Spectrum, "sigma_s": mi.Spectrum, "Le": mi.Spectrum}
-
-    def __init__(self, sigma_t=None, sigma_s=None, Le=None):
-        self.sigma_t, self.sigma_s, self.Le = sigma_t, sigma_s, Le
 
 
 class Tracker:
@@ -102,7 +62,7 @@ class Tracker:
     @property
     def tight_loop(self) -> bool:
         """Cross event-free pieces in the walk's tight loop
-        (:func:`mitsuba_plugins.walk.walk`)? Only where the majorant grid has at least
+        (:func:`mitsuba_plugins.tracking.walk.walk`)? Only where the majorant grid has at least
         :data:`TIGHT_LOOP_CELLS` cells along an axis: it saves a density lookup per cell
         crossed without a tentative collision, but its loop costs ~2 ms of tracing per
         render and, on coarse grids (whose rays cross few cells), about what it saves
@@ -159,7 +119,7 @@ class GridTracker(Tracker):
 class MitsubaTracker(Tracker):
     """Any other medium (Mitsuba's ``heterogeneous``), through Mitsuba's interface:
     ``get_scattering_coefficients`` and, where its extinction is a gridvolume, a
-    majorant grid built from that grid's data (:func:`mitsuba_plugins.majorant.mitsuba_grid`,
+    majorant grid built from that grid's data (:func:`mitsuba_plugins.tracking.majorant.mitsuba_grid`,
     cached while the data stay the same); else one segment over the whole ray with the
     global majorant (a 1-cell grid whose value equals it inside and outside). The global
     majorant is read back once per render and checked (:func:`checked_majorant`); it

@@ -7,7 +7,7 @@ event whose weight depends on a scene parameter, propagates the derivative of th
 weight times the radiance the path gathered *after* the event (Vicini, Speierer and
 Jakob 2021). Nothing is stored per vertex: memory does not grow with path length.
 
-The replay traces exactly the primal path loop (:func:`mitsuba_plugins.volumes.trace_volumes`)
+The replay traces exactly the primal path loop (:func:`mitsuba_plugins.volume_loop.trace_volumes`)
 with a :class:`Replay` handed to it; every sampling decision stays detached, and the
 hooks re-evaluate the parameters they need under ``dr.resume_grad``:
 
@@ -34,10 +34,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.contract import medium_interaction
-from mitsuba_plugins.estimators import NullCollisionRule
-from mitsuba_plugins.scene_media import shadow_pieces
-from mitsuba_plugins.walk import walk
+from mitsuba_plugins.tracking.trackers import medium_interaction
+from mitsuba_plugins.tracking.null_collision import NullCollisionRule
+from mitsuba_plugins.tracking.shadow_rays import shadow_pieces
+from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()
 
@@ -286,7 +286,7 @@ def replay_homogeneous(replay: Replay, medium: mi.MediumPtr, ray: mi.Ray3f, dist
 
 
 class GradientPass:
-    """The shadow ray's pass in a replay (:func:`mitsuba_plugins.scene_media.shadow_pieces`):
+    """The shadow ray's pass in a replay (:func:`mitsuba_plugins.tracking.shadow_rays.shadow_pieces`):
     the transmittance derivative of each piece (:func:`shadow_gradient`) in front of
     ``after``, the emitter sample's detached contribution; ``value`` is the tangent."""
 

@@ -174,12 +174,12 @@ def cell_bounds(maxima: np.ndarray, minima: np.ndarray, index: np.ndarray, shape
     """Majorant and minorant cells ``(Rz, Ry, Rx)`` from the bricks' block extrema.
 
     ``ranges``: per axis (z, y, x) the inclusive voxel ranges a lookup in each cell can
-    read (:func:`mitsuba_plugins.majorant.voxel_ranges`). A brick's block holds its
+    read (:func:`mitsuba_plugins.grids.bounds.voxel_ranges`). A brick's block holds its
     voxels and the high-side apron, so the bricks ``lo // BRICK .. (hi - 1) // BRICK``
     hold every voxel in ``[lo, hi]``; their extrema bound the cell (looser than voxel-exact bounds by
     at most the rest of those bricks). Gray bound: ``max_c w_c max_c``, ``min_c w_c min_c``.
     ``product``: the extrema are factors of a product
-    (:class:`mitsuba_plugins.majorant.ProductMajorantBuilder`): each factor's cell
+    (:class:`mitsuba_plugins.grids.bounds.ProductMajorantBuilder`): each factor's cell
     extremum, multiplied, times the (one) weight.
     """
     w = np.asarray(weights, np.float32)
