@@ -13,7 +13,7 @@ Every scene's own ``max_depth`` (6) is kept. Results go to
 ``benchmarks/results/corpus_<variant>.{md,json}``.
 
     git clone https://github.com/mitsuba-renderer/mitsuba-data
-    python3 benchmarks/corpus.py --data mitsuba-data --variant llvm_ad_spectral
+    python3 -m benchmarks.corpus --data mitsuba-data --variant llvm_ad_spectral
 """
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def write(rows: list, variant: str, args) -> None:
                 f"integrator, the reference (the integrator the scene names) with other "
                 f"seeds; {when}")
     lines = [f"# Mitsuba's participating-media render tests, `{variant}`", "",
-             f"_From `python3 benchmarks/corpus.py --variant {variant}` ({settings}). "
+             f"_From `python3 -m benchmarks.corpus --variant {variant}` ({settings}). "
              "Checks: docs/validation.md (per-pixel Welch test, 8x8 blocks, image mean)._",
              "", "| scene | integrator | reference | result | pixels failing | blocks failing | "
              "image-mean z | image mean (ours / reference) | NaN/Inf |",

@@ -25,8 +25,8 @@ default) and rr_depth 5.
    found by phase/BSDF sampling alone) and by shadow-ray estimator. Sections 2 and 3
    profile the defaults before issue 16 (``old_default``), which decided what to build.
 
-``python3 benchmarks/dense.py --out benchmarks/results/dense_profile`` gave the profile;
-``python3 benchmarks/dense.py --no-profile --variants A,B,...`` compares configurations of
+``python3 -m benchmarks.dense --out benchmarks/results/dense_profile`` gave the profile;
+``python3 -m benchmarks.dense --no-profile --variants A,B,...`` compares configurations of
 :data:`VARIANTS` at equal time (the defaults' choice, ``benchmarks/results/dense.md``).
 """
 from __future__ import annotations
@@ -42,8 +42,8 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-from common import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
-from volpath_delta import smooth_field  # noqa: E402
+from benchmarks.harness import alternate, device_model, timed_render
+from benchmarks.volpath_delta import smooth_field
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()
@@ -388,7 +388,7 @@ def sweep_markdown(result: dict) -> str:
     lines = [
         "# Majorant grid resolution on the dense family (volpath_delta against volpath)", "",
         f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
-        f"`python3 benchmarks/dense.py {cfg['argv']}` (res {cfg['res']}, {cfg['spp']} spp, "
+        f"`python3 -m benchmarks.dense {cfg['argv']}` (res {cfg['res']}, {cfg['spp']} spp, "
         f"{cfg['runs']} alternating renders of each: time = median time / volpath's, variance = "
         "relative variance per sample over the renders / volpath's, efficiency = 1 / (time x "
         "variance)). Columns: the automatic choice (`majorant.auto_resolution`, the default) "
@@ -408,7 +408,7 @@ def markdown(result: dict) -> str:
     lines = [
         "# Dense-media family: volpath_delta against Mitsuba's volpath", "",
         f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
-        f"`python3 benchmarks/dense.py {cfg['argv']}` (res {cfg['res']}, volpath {cfg['spp']} "
+        f"`python3 -m benchmarks.dense {cfg['argv']}` (res {cfg['res']}, volpath {cfg['spp']} "
         f"spp, {cfg['runs']} alternating runs at equal time, median time, mean relMSE; "
         "volpath s/spp and time/spp: measured time per sample, ours over volpath's for "
         f"the latter; reference {cfg['ref_spp']} spp of {cfg['reference']}; max_depth -1). The family and the "

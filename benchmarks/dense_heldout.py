@@ -20,7 +20,7 @@ median time), its 90% bootstrap interval over runs), and the relative MSE per sa
 against volpath's (``rel_mse_per_sample_ratio``: below 1 means lower variance per
 sample).
 
-``python3 benchmarks/dense_heldout.py --half tuning`` / ``--half test`` (default: both);
+``python3 -m benchmarks.dense_heldout --half tuning`` / ``--half test`` (default: both);
 writes ``benchmarks/results/dense_heldout.{md,json}``.
 """
 from __future__ import annotations
@@ -37,8 +37,8 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-import dense  # noqa: E402  (benchmarks/ is on sys.path; sets the variant)
-from common import device_model  # noqa: E402
+from benchmarks import dense  # sets the variant
+from benchmarks.harness import device_model
 from mitsuba_plugins import output
 from mitsuba_plugins.grids import gridio
 
@@ -198,7 +198,7 @@ def markdown(result: dict) -> str:
     variants = cfg["variants"]
     lines = ["# Dense media, held out: volpath_delta against Mitsuba's volpath", "",
              f"Measured {result['date']} on {result['cpu']} ({dense.VARIANT}, Mitsuba "
-             f"{mi.__version__}) by `python3 benchmarks/dense_heldout.py {cfg['argv']}` (res "
+             f"{mi.__version__}) by `python3 -m benchmarks.dense_heldout {cfg['argv']}` (res "
              f"{cfg['res']}, volpath {cfg['spp']} spp, {cfg['runs']} alternating runs at equal "
              f"time, median time, mean relMSE; time/spp: measured time per sample over volpath's; reference {cfg['ref_spp']} spp of "
              f"{cfg['reference']}). Family and method: the script's docstring. Targets (test "

@@ -4,7 +4,7 @@ A fog cube (side 2, albedo 0.9/0.8/0.7, HG g 0.3) over a diffuse floor, lit by a
 light or a spot light inside it, off centre; extinctions ``--sigmas``. Configurations:
 ``volpath_delta`` with ``equiangular`` off and on, and Mitsuba's ``volpath``. Each
 renders ``--runs`` images of ``--spp`` at 32x32 with disjoint seeds, the configurations
-alternating (benchmarks/common.py), after a warm-up render each.
+alternating (benchmarks/harness.py), after a warm-up render each.
 
 Reported per configuration: the image mean with its z against ``off`` (difference of the
 means over its standard error: the check that both estimate one image), the relative
@@ -15,7 +15,7 @@ render, and the efficiency 1 / (relative variance x time) over ``off``'s and ove
 the light): with 24 runs it read 0.26, with 200 runs 0.65 (point light, sigma_t 0.3), so
 use many runs.
 
-``python3 benchmarks/equiangular.py`` writes ``benchmarks/results/equiangular.{md,json}``.
+``python3 -m benchmarks.equiangular`` writes ``benchmarks/results/equiangular.{md,json}``.
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ import mitsuba as mi
 import numpy as np
 
 mi.set_variant("llvm_ad_rgb")
-from common import alternate, device_model, timed_render  # noqa: E402
+from benchmarks.harness import alternate, device_model, timed_render
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = {"off": {"type": "volpath_delta"},
@@ -106,9 +106,9 @@ def main():
     meta = {"date": datetime.date.today().isoformat(), "cpu": device_model(mi.variant()),
             "variant": mi.variant(), "argv": " ".join(sys.argv[1:]), "rows": rows}
     Path(args.out + ".json").write_text(json.dumps(meta, indent=1))
-    lines = [f"# Equiangular sampling: where it pays\n",
-             f"Measured {meta['date']} on {meta['cpu']} ({meta['variant']}) by `python3 "
-             f"benchmarks/equiangular.py {meta['argv']}` ({args.runs} alternating runs of "
+    lines = ["# Equiangular sampling: where it pays\n",
+             f"Measured {meta['date']} on {meta['cpu']} ({meta['variant']}) by `python3 -m "
+             f"benchmarks.equiangular {meta['argv']}` ({args.runs} alternating runs of "
              f"{args.spp} spp at {args.res}x{args.res}; method: the script's docstring).\n",
              "| light, sigma_t | config | mean (z vs off) | relvar | time (ms) | "
              "eff / off | eff / volpath |", "|---|---|---|---|---|---|---|"]

@@ -30,7 +30,7 @@ from mitsuba_plugins import output
 import mitsuba as mi
 import numpy as np
 
-from common import cpu_model, status_mib, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from benchmarks.harness import cpu_model, status_mib, timed_render
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ["smoke", "sparse", "chromatic"]
@@ -78,8 +78,9 @@ def _memory_child(kind: str, path: str) -> None:
 
 
 def _run_child(kind, path):
-    out = subprocess.run([sys.executable, __file__, "--memory-child", kind, path],
-                         check=True, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-m", __spec__.name,
+                           "--memory-child", kind, path],
+                         check=True, capture_output=True, text=True, cwd=ROOT)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -121,7 +122,7 @@ def write_results(result, out_dir: Path):
         "",
         f"{result['date']}, {result['cpu']} ({result['cores']} cores), Mitsuba "
         f"{result['mitsuba']}, variant {result['variant']}. Command: "
-        "`python benchmarks/grid_medium.py`.",
+        "`python -m benchmarks.grid_medium`.",
         "",
         f"## Mitsuba's volpath: grid_medium vs heterogeneous ({result['res']}^2, "
         f"{result['spp']} spp, median of {result['runs']} alternating warm renders)",

@@ -8,8 +8,8 @@ in varying order leave up to ~5e-7 relative.
 
 Run from the repository root::
 
-    python3 benchmarks/identity.py capture /tmp/before   # before the change
-    python3 benchmarks/identity.py check /tmp/before     # after it: prints the worst
+    python3 -m benchmarks.identity capture /tmp/before   # before the change
+    python3 -m benchmarks.identity check /tmp/before     # after it: prints the worst
 
 Only public interfaces are used (scene files, ``mi.render``, ``mi.traverse``), so the
 same script captures from an older checkout.

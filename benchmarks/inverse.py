@@ -9,7 +9,7 @@
   ``mi.ad.Adam``, ours against prbvolpath at equal wall time: loss and relative L2 error
   of the grid over time; and an emission grid (prbvolpath ignores emission) with ours.
 
-Run from the repository root: ``python3 benchmarks/inverse.py [--part P] [--quick]``.
+Run from the repository root: ``python3 -m benchmarks.inverse [--part P] [--quick]``.
 Results: benchmarks/results/inverse.{md,json}, plots docs/results/inverse_*.png.
 """
 from __future__ import annotations
@@ -23,8 +23,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import mitsuba_plugins  # noqa: E402,F401  -- picks libLLVM first (unused otherwise)
 import drjit as dr  # noqa: E402
@@ -41,7 +39,7 @@ METHODS = {"drt": {"type": "volpath_delta", "gradient_estimator": "drt"},
 
 
 def smoke_scene(scale: float, res: int = 16, albedo: float = 0.85):
-    from helpers import camera, grid, media_scene
+    from mitsuba_plugins.tools.scenes import camera, grid, media_scene
     return media_scene(grid(scale=scale, albedo=albedo), sensor=camera(res=res))
 
 
@@ -52,7 +50,7 @@ def density_key(params) -> str:
 # -- efficiency --------------------------------------------------------------------------
 def efficiency(quick: bool) -> dict:
     from mitsuba_plugins.tools import gradcheck
-    from test_gradients import smooth_direction
+    from mitsuba_plugins.tools.gradcheck import smooth_direction
     runs = 6 if quick else 16
     out = {}
     for label, scale in (("thin (scale 2)", 2.0), ("smoke (scale 8)", 8.0),
@@ -89,7 +87,7 @@ def efficiency(quick: bool) -> dict:
 
 # -- memory ------------------------------------------------------------------------------
 def memory_child(depth: int) -> None:
-    from common import status_mib
+    from benchmarks.harness import status_mib
     scene = smoke_scene(8.0, res=64, albedo=0.99)
     params = mi.traverse(scene)
     key = density_key(params)
@@ -107,8 +105,9 @@ def memory_child(depth: int) -> None:
 def memory() -> dict:
     out = {}
     for depth in (8, 256):
-        result = subprocess.run([sys.executable, __file__, "--memory-child", str(depth)],
-                                capture_output=True, text=True, check=True)
+        result = subprocess.run([sys.executable, "-m", __spec__.name,
+                           "--memory-child", str(depth)],
+                                capture_output=True, text=True, check=True, cwd=ROOT)
         out[depth] = json.loads(result.stdout.strip().splitlines()[-1])
     out["ratio_256_over_8"] = out[256]["peak_mib"] / out[8]["peak_mib"]
     print("memory", json.dumps(out), flush=True)
@@ -117,7 +116,7 @@ def memory() -> dict:
 
 # -- reconstruction ----------------------------------------------------------------------
 def ring_sensors(n: int, res: int, radius: float = 4.0):
-    from helpers import camera
+    from mitsuba_plugins.tools.scenes import camera
     sensors = []
     for i in range(n):
         a = 2 * np.pi * i / n
@@ -129,7 +128,7 @@ def ring_sensors(n: int, res: int, radius: float = 4.0):
 def resampled_smoke(resolution: int) -> np.ndarray:
     from scipy.ndimage import zoom
     from mitsuba_plugins.grids import gridio
-    from helpers import SMOKE
+    from mitsuba_plugins.tools.scenes import SMOKE
     data = gridio.read_grid(SMOKE)[0][..., :1]
     factor = resolution / data.shape[0]
     return np.clip(zoom(data[..., 0], factor, order=1), 0, None)[..., None].astype(np.float32)
@@ -186,7 +185,7 @@ def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid
     for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
     offsets the gradient renders' seeds."""
     import tempfile
-    from helpers import media_scene
+    from mitsuba_plugins.tools.scenes import media_scene
     from mitsuba_plugins.grids import gridio
     true = grid
     tmp = tempfile.mkdtemp()
@@ -319,7 +318,7 @@ def plot(results: dict) -> None:
 
 
 def write(results: dict) -> None:
-    from common import device_model
+    from benchmarks.harness import device_model
     RESULTS.mkdir(parents=True, exist_ok=True)
     old = {}
     path = RESULTS / "inverse.json"
@@ -332,7 +331,7 @@ def write(results: dict) -> None:
     old.update(results)
     path.write_text(json.dumps(old, indent=1))
     lines = [f"# Gradients: volpath_delta against prbvolpath ({device_model(mi.variant())}, "
-             f"{mi.variant()})", "", "Written by `python3 benchmarks/inverse.py`.", ""]
+             f"{mi.variant()})", "", "Written by `python3 -m benchmarks.inverse`.", ""]
     if "efficiency" in old:
         lines += ["## Gradient efficiency (1 / (variance x time)), relative to prbvolpath", "",
                   "| scene | drt | delta | prbvolpath s/render | derivative (drt, prbvolpath) |",

@@ -16,7 +16,7 @@ stays below 87, where volpath is still right (benchmarks/underflow.py). Efficien
 
 Writes ``benchmarks/results/production_smoke.{md,json}``.
 
-    python3 benchmarks/production_smoke.py      # about 5 minutes on 2 cores
+    python3 -m benchmarks.production_smoke      # about 5 minutes on 2 cores
 """
 from __future__ import annotations
 
@@ -33,8 +33,7 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import alternate, cpu_model, timed_render  # noqa: E402
+from benchmarks.harness import alternate, cpu_model, timed_render
 
 ROOT = Path(__file__).resolve().parents[1]
 SHAPE = (114, 224, 113)        # (z, y, x) voxels

@@ -15,7 +15,7 @@ and from these an estimate of passes per second for 8, 64 and 512 workers. Write
 ``benchmarks/results/reference_scaling.{md,json}``.
 
 Needs the ``distributed`` extra. Run from the repository root:
-``python3 benchmarks/reference_scaling.py``.
+``python3 -m benchmarks.reference_scaling``.
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from pathlib import Path
 import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 
-from common import device_model  # noqa: E402  (benchmarks/ is on sys.path)
+from benchmarks.harness import device_model
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()
@@ -163,7 +163,7 @@ def markdown(r: dict) -> str:
     c = r["config"]
     lines = ["# Dask references: speed-up and scaling", "",
              f"Measured {r['date']} on {r['cpu']} ({r['cores']} cores, {r['variant']}) by "
-             f"`python3 benchmarks/reference_scaling.py`: `{c['scene']}` with "
+             f"`python3 -m benchmarks.reference_scaling`: `{c['scene']}` with "
              f"`{c['integrator']}` at {c['res']}x{c['res']}, {c['spp']} spp in {c['passes']} "
              "passes (one Dask task each), same seeds in every row. Wall: from submitting the "
              "first pass to the last result (cluster start-up excluded). Target: >= "

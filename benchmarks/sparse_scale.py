@@ -13,8 +13,8 @@ Targets (issue 13): peak memory <= 4 x the active voxels' float32 bytes + 64 MB;
 2048^3 box loads and renders in <= 8 GB (our process and the worker); >= 20 million active
 voxels per second loaded from .vdb; sparse <= 1.3x the dense time per sample.
 
-    python3 benchmarks/sparse_scale.py                  # 256..2048, about 15 minutes
-    python3 benchmarks/sparse_scale.py --sizes 256,512  # quick
+    python3 -m benchmarks.sparse_scale                  # 256..2048, about 15 minutes
+    python3 -m benchmarks.sparse_scale --sizes 256,512  # quick
 
 Writes ``benchmarks/results/sparse_scale.{md,json}``.
 """
@@ -39,7 +39,7 @@ RES, SPP = 128, 16
 GENERATOR = r"""
 import sys, numpy as np, pyopenvdb as vdb
 sys.path.insert(0, sys.argv[3])
-from cloud import cloud_slices, extent
+from benchmarks.cloud import cloud_slices, extent
 n, path = int(sys.argv[1]), sys.argv[2]
 g = vdb.FloatGrid(); g.name = "density"
 t = vdb.createLinearTransform(2.0 / n); t.translate((-1.0, -1.0, -1.0)); g.transform = t
@@ -59,7 +59,7 @@ def generate(n: int, folder: Path) -> tuple:
         return path, json.loads(meta.read_text())["active"]
     t0 = time.perf_counter()
     out = subprocess.run([openvdb_python(), "-c", GENERATOR, str(n), str(path),
-                          str(ROOT / "benchmarks")],
+                          str(ROOT)],
                          check=True, capture_output=True, text=True).stdout
     active = int(out.strip().splitlines()[-1])
     meta.write_text(json.dumps({"active": active}))
@@ -75,8 +75,7 @@ def worker(config: dict) -> dict:
     import mitsuba as mi
     mi.set_variant(config["variant"])
     mi.set_log_level(mi.LogLevel.Error)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from common import status_mib, timed_render
+    from benchmarks.harness import status_mib, timed_render
     Path("/proc/self/clear_refs").write_text("5")      # VmHWM := current RSS
     base = status_mib("VmHWM")
     if config["medium"] == "heterogeneous":
@@ -86,7 +85,7 @@ def worker(config: dict) -> dict:
     else:
         medium = {"type": "grid_medium", "filename": config["file"], "albedo": 0.8,
                   "storage": config["storage"]}
-    from cloud import scene_dict
+    from benchmarks.cloud import scene_dict
     t0 = time.perf_counter()
     scene = mi.load_dict(scene_dict(medium, RES, mi))
     dr.sync_thread()
@@ -111,8 +110,9 @@ def worker(config: dict) -> dict:
 
 
 def run_config(config: dict) -> dict:
-    proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(config)],
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", __spec__.name,
+                           "--worker", json.dumps(config)],
+                          capture_output=True, text=True, cwd=ROOT)
     if proc.returncode != 0:
         raise RuntimeError(f"{config}: {proc.stderr[-2000:]}")
     result = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -125,7 +125,7 @@ def markdown(result: dict) -> str:
     lines = ["# Sparse storage at scale", "",
              f"Measured {result['date']} on {result['cpu']} ({result['cores']} cores, "
              f"{result['memory_gb']:.0f} GB, {result['variant']}) by "
-             "`python3 benchmarks/sparse_scale.py`. Procedural clouds (.vdb, about 4% of the "
+             "`python3 -m benchmarks.sparse_scale`. Procedural clouds (.vdb, about 4% of the "
              f"box active), {RES}x{RES} at {SPP} spp, max_depth 16; peak memory is above a bare "
              "Mitsuba process (our process; the OpenVDB worker process apart); time per "
              "sample is the median of 3 renders after a warm-up.", "",
@@ -190,8 +190,7 @@ def main() -> int:
     from mitsuba_plugins import output
     from mitsuba_plugins.grids import gridio
     from mitsuba_plugins.registry import default_variant
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from common import device_model
+    from benchmarks.harness import device_model
     variant = default_variant()
     folder = Path(args.folder)
     folder.mkdir(parents=True, exist_ok=True)

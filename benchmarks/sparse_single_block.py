@@ -1,4 +1,4 @@
-"""The sparse single-scattering block of tests/test_volpath_raymarch.py, measured.
+"""The sparse single-scattering block of tests/integrators/test_volpath_raymarch.py, measured.
 
 ``test_single_against_volpath_depth_2[sparse_grid_medium]`` compares ``volpath_raymarch``
 ``single`` (8 passes x 32 spp, seeds 1000-1007) with ``volpath`` at ``max_depth = 2``
@@ -15,14 +15,13 @@ many more samples, to decide whether ours or the reference is off:
 
 Writes ``benchmarks/results/sparse_single_block.{md,json}``.
 
-    python3 benchmarks/sparse_single_block.py        # about 5 minutes on 2 cores
+    python3 -m benchmarks.sparse_single_block        # about 5 minutes on 2 cores
 """
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,8 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import cpu_model  # noqa: E402
+from benchmarks.harness import cpu_model
 
 OURS = {"type": "volpath_raymarch", "step_size": 0.04, "mode": "single", "max_depth": 2,
         "step_mode": "majorant", "step_optical_depth": 0.05}
@@ -106,8 +104,8 @@ def main():
               "seconds": time.perf_counter() - t0}
     out = ROOT / "benchmarks" / "results"
     (out / "sparse_single_block.json").write_text(json.dumps(result, indent=1))
-    lines = ["# The sparse single-scattering block (tests/test_volpath_raymarch.py)", "",
-             f"`python3 benchmarks/sparse_single_block.py` on {result['date']} ({result['cpu']}), "
+    lines = ["# The sparse single-scattering block (tests/integrators/test_volpath_raymarch.py)", "",
+             f"`python3 -m benchmarks.sparse_single_block` on {result['date']} ({result['cpu']}), "
              f"{result['seconds']:.0f} s. Block rows/columns 8-15 of scenes/sparse.xml at 32x32, "
              "blue, max_depth 2.", "",
              "| estimate | spp per pixel | block mean | se (from passes) |", "|---|---|---|---|"]

@@ -5,8 +5,8 @@ volpath_delta and volpath_raymarch (256x256 at 16 spp, alternating, median of 5 
 warm-up). ``scenes``: the same for scenes/smoke.xml, sparse.xml and chromatic.xml (their
 ``storage`` parameter; 128x128). Target (issue 13): sparse <= 1.3x dense.
 
-    MITSUBA_PLUGINS_VARIANT=cuda_ad_rgb python3 benchmarks/sparse_vs_dense.py 256,512
-    python3 benchmarks/sparse_vs_dense.py scenes
+    MITSUBA_PLUGINS_VARIANT=cuda_ad_rgb python3 -m benchmarks.sparse_vs_dense 256,512
+    python3 -m benchmarks.sparse_vs_dense scenes
 
 Prints its table (committed figures: docs/benchmarks.md).
 """
@@ -24,8 +24,8 @@ from mitsuba_plugins.registry import default_variant
 
 mi.set_variant(default_variant())
 mi.set_log_level(mi.LogLevel.Error)
-from cloud import scene_dict, write_npy  # noqa: E402  (benchmarks/ is on sys.path)
-from common import timed_render  # noqa: E402
+from benchmarks.cloud import scene_dict, write_npy
+from benchmarks.harness import timed_render
 
 RES, SPP, RUNS = 256, 16, 5
 ROOT = Path(__file__).resolve().parents[1]

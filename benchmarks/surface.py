@@ -6,7 +6,7 @@ dr.sync_thread(). Reported: median time per render, the time ratio, relative MSE
 over the runs) against a cached high-spp reference of the built-in, efficiency
 1 / (relMSE x time) and its ratio. Results go to benchmarks/results/surface.{md,json}.
 
-    python3 benchmarks/surface.py            # about 4 minutes on 2 cores
+    python3 -m benchmarks.surface            # about 4 minutes on 2 cores
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from common import alternate, cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from benchmarks.harness import alternate, cpu_model, timed_render
 from mitsuba_plugins import output
 from mitsuba_plugins.tools import stats
 from mitsuba_plugins.tools.compare import cached_reference
@@ -85,7 +85,7 @@ def main():
         f"Mitsuba {meta['mitsuba']}, Dr.Jit {meta['drjit']}, LLVM {meta['llvm']}. "
         f"{args.res}x{args.res}, {args.spp} spp per render; median of {args.runs} alternating warm "
         f"renders; relative MSE against the built-in at {args.ref_spp} spp. "
-        "Regenerate: `python3 benchmarks/surface.py`.",
+        "Regenerate: `python3 -m benchmarks.surface`.",
         "",
         "| scene | ours / built-in | ours [s] | built-in [s] | time ratio (target <= 1.05) "
         "| rel. MSE ours | rel. MSE built-in | efficiency ratio (target >= 0.95) |",

@@ -17,7 +17,7 @@ passes ~87, and the path is dropped. Measured:
 Writes ``benchmarks/results/underflow.{md,json}`` and ``docs/results/underflow_panel.png``
 (the gallery, ``benchmarks/results.py``, includes the table).
 
-    python3 benchmarks/underflow.py                 # about 5 minutes on 2 cores
+    python3 -m benchmarks.underflow                 # about 5 minutes on 2 cores
 """
 from __future__ import annotations
 
@@ -32,9 +32,8 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cloud import cloud_slices, extent  # noqa: E402
-from common import cpu_model  # noqa: E402
+from benchmarks.cloud import cloud_slices, extent
+from benchmarks.harness import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -147,7 +146,7 @@ def main() -> int:
     lines = [
         "# Where Mitsuba's volpath goes black (mitsuba3 #336)", "",
         f"Measured {result['date']} on {result['cpu']} ({args.variant}, Mitsuba "
-        f"{result['mitsuba']}) by `python3 benchmarks/underflow.py`: a procedural cloud "
+        f"{result['mitsuba']}) by `python3 -m benchmarks.underflow`: a procedural cloud "
         f"(128^3, about 4% active, largest extinction {args.sigma:g}, albedo 0.95, HG 0.5) "
         "stored as a .vol whose box is the cloud's active box, inside a bounding cube "
         "[-1, 1]^3 with a null BSDF, sun and sky; "

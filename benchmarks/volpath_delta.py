@@ -4,7 +4,7 @@
    time per sample measured, then volpath at ``--spp`` and volpath_delta at the spp
    that takes about as long; ``--runs`` alternating renders each (different seeds).
    relMSE (docs/method.md section 1) against a reference rendered by volpath_delta at
-   ``--ref-spp`` (unbiasedness against volpath is tested in tests/test_volpath_delta.py;
+   ``--ref-spp`` (unbiasedness against volpath is tested in tests/integrators/test_volpath_delta.py;
    the reference's own noise adds the same expected error to both sides);
    efficiency = 1 / (mean relMSE x median time). Targets (issue): homogeneous
    chromatic >= 1.3x, sparse smoke >= 3x, dense smooth heterogeneous >= 1.0x.
@@ -35,14 +35,13 @@ import mitsuba as mi
 import drjit as dr
 import numpy as np
 
-from common import alternate, device_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from benchmarks.harness import alternate, device_model, timed_render
 from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 VARIANT = default_variant()      # $MITSUBA_PLUGINS_VARIANT, e.g. cuda_ad_rgb on a GPU
 mi.set_variant(VARIANT)
 from mitsuba_plugins import instrument, output
-from mitsuba_plugins.tracking import transmittance
-from mitsuba_plugins.tracking import trackers
+from mitsuba_plugins.tracking import trackers, transmittance
 from mitsuba_plugins.tools import stats  # noqa: E402  (needs a variant)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -233,7 +232,7 @@ def markdown(result: dict) -> str:
     lines = [
         "# volpath_delta vs Mitsuba's volpath", "",
         f"Measured {result['date']} on {result['cpu']} ({VARIANT}, Mitsuba {mi.__version__}) by "
-        f"`python3 benchmarks/volpath_delta.py` (res {cfg['res']}, volpath {cfg['spp']} spp, "
+        f"`python3 -m benchmarks.volpath_delta` (res {cfg['res']}, volpath {cfg['spp']} spp, "
         f"{cfg['runs']} alternating runs, median time; reference: volpath_delta "
         f"{cfg['ref_spp']} spp; max_depth {MAX_DEPTH}).", "",
         "## Efficiency at equal time (target per scene)", "",

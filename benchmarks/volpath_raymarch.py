@@ -36,7 +36,7 @@ import mitsuba_plugins  # noqa: F401  -- chooses libLLVM before drjit loads
 import mitsuba as mi
 import numpy as np
 
-from common import cpu_model, timed_render  # noqa: E402  (benchmarks/ is on sys.path)
+from benchmarks.harness import cpu_model, timed_render
 
 mi.set_variant("llvm_ad_rgb")
 from mitsuba_plugins import output
@@ -244,7 +244,7 @@ def markdown(result: dict) -> str:
         "# volpath_raymarch: bias per step, error against time",
         "",
         f"{result['date']}, {result['cpu']}, llvm_ad_rgb. "
-        f"Command: `python3 benchmarks/volpath_raymarch.py` (this file is its output).",
+        f"Command: `python3 -m benchmarks.volpath_raymarch` (this file is its output).",
         "",
         "## Bias per step size",
         "",

@@ -5,9 +5,9 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.mis import HEURISTICS, MIS
-from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, PluginParameterError
-from mitsuba_plugins.path_vertex import (EMITTER_SELECTIONS, EmitterSelection, emitter_contribution,
-                                     sample_emitter)
+from mitsuba_plugins.params import Params, PluginParameterError, SAMPLING_INTEGRATOR_BASE
+from mitsuba_plugins.path_vertex import (EMITTER_SELECTIONS, EmitterSelection,
+                                         emitter_contribution, sample_emitter)
 from mitsuba_plugins.validity import SampleGuard, refuse_gradients
 
 VARIANT = mi.variant()

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.transmittance import TRANSMITTANCE_ESTIMATORS
-from mitsuba_plugins.tracking.free_flights import FREE_FLIGHTS
-from mitsuba_plugins.params import PluginParameterError
-from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins import differentiable
+from mitsuba_plugins.tracking.free_flights import FREE_FLIGHTS
 from mitsuba_plugins.tracking.replay import GRADIENT_ESTIMATORS
-from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
+from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.tracking.transmittance import TRANSMITTANCE_ESTIMATORS
 from mitsuba_plugins.tracking.walk import walk
+from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
 
 VARIANT = mi.variant()
 
@@ -20,7 +19,7 @@ VARIANT = mi.variant()
 DEFAULT_TRANSMITTANCE = "residual"
 DEFAULT_FREE_FLIGHT = "delta"
 #: Chosen on the tuning half of the held-out dense family (issue 29,
-#: benchmarks/results/dense_heldout_tuning.md).
+#: its table: git show aa26248:benchmarks/results/dense_heldout_tuning.md).
 DEFAULT_SHADOW_ROULETTE = 0.2
 #: Largest threshold: below 1, so that an unattenuated ray is never played.
 MAX_SHADOW_ROULETTE = 0.999

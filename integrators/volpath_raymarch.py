@@ -5,17 +5,16 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.trackers import medium_interaction
-from mitsuba_plugins.tracking.homogeneous import homogeneous_transmittance
-from mitsuba_plugins.tracking.marching import (STEP_MODES, Marcher, MarchedFlight, MarchedSingle,
-                                      sample_cell_point)
 from mitsuba_plugins.params import PluginParameterError
+from mitsuba_plugins.tracking.homogeneous import FreeFlight, homogeneous_transmittance
+from mitsuba_plugins.tracking.marching import (MarchedFlight, MarchedSingle, Marcher,
+                                               STEP_MODES, sample_cell_point)
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
-from mitsuba_plugins.validity import refuse_gradients
-from mitsuba_plugins.tracking.homogeneous import FreeFlight
-from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
+from mitsuba_plugins.tracking.trackers import medium_interaction
 from mitsuba_plugins.tracking.walk import walk
+from mitsuba_plugins.validity import refuse_gradients
+from mitsuba_plugins.volume_loop import VolumeStrategy, VolumetricIntegrator
 
 VARIANT = mi.variant()
 

@@ -10,17 +10,13 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking import majorant
-from mitsuba_plugins.grids import placement
-from mitsuba_plugins.grids import stores
-from mitsuba_plugins.grids import gridio
-from mitsuba_plugins.grids import side_grids
+from mitsuba_plugins.grids import gridio, nested_volume, placement, side_grids, stores
 from mitsuba_plugins.grids.side_grids import SideGrids
-from mitsuba_plugins.grids.value_checks import check_float32, checked_factors
-from mitsuba_plugins.grids import nested_volume
-from mitsuba_plugins.tracking.majorant_grid import ray_box
-from mitsuba_plugins.params import Params, PluginParameterError, floats
 from mitsuba_plugins.grids.spectra import Multiplier
+from mitsuba_plugins.grids.value_checks import check_float32, checked_factors
+from mitsuba_plugins.params import Params, PluginParameterError, floats
+from mitsuba_plugins.tracking import majorant
+from mitsuba_plugins.tracking.majorant_grid import ray_box
 
 VARIANT = mi.variant()
 

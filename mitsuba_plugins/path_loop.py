@@ -11,9 +11,9 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.mis import MIS
-from mitsuba_plugins.params import SAMPLING_INTEGRATOR_BASE, Params, depth_limit
+from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
 from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
-                                     emitter_contribution, sample_emitter)
+                                         emitter_contribution, sample_emitter)
 from mitsuba_plugins.validity import SampleGuard
 
 VARIANT = mi.variant()

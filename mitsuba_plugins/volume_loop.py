@@ -12,17 +12,17 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking import equiangular
-from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
-from mitsuba_plugins.tracking.homogeneous import (FreeFlight, homogeneous_free_flight,
-                                                  sample_exponential)
+from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
+from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_contribution
+from mitsuba_plugins.tracking import equiangular
+from mitsuba_plugins.tracking.homogeneous import (FreeFlight, homogeneous_free_flight,
+                                                  sample_exponential)
 from mitsuba_plugins.tracking.replay import replay_homogeneous, replay_vertex
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
-from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_contribution
-from mitsuba_plugins.instrument import count, settings
+from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
 
 VARIANT = mi.variant()
 

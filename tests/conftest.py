@@ -38,7 +38,7 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def variant(request):
     """Every test starts in the test variant with the plugins registered and a clean JIT;
-    a test that asks for the ``other_variant`` fixture (tests/test_variants.py, module
+    a test that asks for the ``other_variant`` fixture (tests/integrators/test_spectral_and_mono.py, module
     scope) starts in that one. The switch happens only where the variant changes: each
     switch re-imports the plugin modules, and tests are grouped by variant."""
     wanted = request.getfixturevalue("other_variant") \

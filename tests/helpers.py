@@ -15,11 +15,11 @@ import numpy as np
 
 from mitsuba_plugins.grids import vdb_openvdb
 from mitsuba_plugins.tools import stats
+# the small scenes built in code, shared with the benchmarks
+from mitsuba_plugins.tools.scenes import (SCENES, SMOKE, SPARSE, camera, grid,  # noqa: F401
+                                          homogeneous, media_scene)
 from mitsuba_plugins.validity import counted
 
-SCENES = Path(__file__).resolve().parents[1] / "scenes"
-SMOKE = str(SCENES / "data" / "smoke.vol")
-SPARSE = str(SCENES / "data" / "sparse.vol")
 #: resolution of the media scenes' image tests
 RES = 32
 FAILURES = Path(os.environ.get("MITSUBA_PLUGINS_TEST_OUT", Path(__file__).resolve().parents[1] / "out" / "test-failures"))
@@ -113,57 +113,6 @@ def assert_mean_equals(images, expected: float, name: str, alpha: float = 1e-3):
 
 
 # -- media scenes and segments shared by the volumetric integrators' tests ----------------
-def camera(res=RES, origin=(0.0, 0.6, 4.0), fov=38.0, medium=None, target=(0.0, 0.0, 0.0)):
-    """A perspective sensor looking at ``target`` (optionally inside ``medium``)."""
-    cam = {"type": "perspective", "fov": fov,
-           "to_world": mi.ScalarTransform4f().look_at(list(origin), list(target), [0, 1, 0]),
-           "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
-           "sampler": {"type": "independent", "sample_count": 16}}
-    if medium is not None:
-        cam["medium"] = medium
-    return cam
-
-
-def media_scene(medium=None, bsdf=None, extra=None, sensor=None, env=0.4, as_dict=False):
-    """A unit sphere holding ``medium`` behind ``bsdf`` (null by default) over a
-    diffuse floor, lit by a small spherical light and a constant environment (loaded,
-    or its description with ``as_dict``); ``env=0``: no environment (a constant of
-    radiance 0 cannot be built in spectral variants: "no probability mass found")."""
-    scene = {
-        "type": "scene",
-        "light": {"type": "sphere", "center": [1.6, 2.2, 1.2], "radius": 0.25,
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 40.0}}},
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().translate([0, -1.05, 0]).rotate(
-                      [1, 0, 0], -90).scale(4),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}},
-        "sensor": sensor or camera(),
-    }
-    if env:
-        scene["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": env}}
-    if medium is not None:
-        scene["ball"] = {"type": "sphere", "bsdf": bsdf or {"type": "null"}, "interior": medium}
-    scene.update(extra or {})
-    return scene if as_dict else mi.load_dict(scene)
-
-
-def homogeneous(sigma_t, albedo=0.8, g=None):
-    medium = {"type": "homogeneous", "sigma_t": sigma_t, "albedo": albedo}
-    if isinstance(sigma_t, list):  # rgb values must be <= 1: normalise, move the max to scale
-        medium["sigma_t"] = {"type": "rgb", "value": [s / max(sigma_t) for s in sigma_t]}
-        medium["scale"] = max(sigma_t)
-    if g is not None:
-        medium["phase"] = {"type": "hg", "g": g}
-    return medium
-
-
-def grid(filename=SMOKE, scale=8.0, albedo=0.85, to_world=None, **kw):
-    medium = {"type": "grid_medium", "filename": filename, "scale": scale, "albedo": albedo,
-              "to_world": to_world or mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}
-    medium.update(kw)
-    return medium
-
-
 #: the wavelengths (nm) at which :func:`medium_at` evaluates in spectral variants
 PROBE_NM = (450.0, 520.0, 600.0, 680.0)
 #: Mitsuba's luminance weights (mono variants render an RGB value's luminance)

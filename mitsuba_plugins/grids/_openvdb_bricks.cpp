@@ -2,7 +2,7 @@
 // mitsuba_plugins/grids/bricks.py, walking OpenVDB's leaf nodes and active tiles (never a
 // dense box). Built by pip against Debian's libopenvdb-dev when it is there
 // (setup.py: optional); mitsuba_plugins/grids/vdb_openvdb.py falls back to the pyopenvdb worker
-// process otherwise. The result equals the worker's (tests/test_vdb_files.py).
+// process otherwise. The result equals the worker's (tests/grids/test_vdb_files.py).
 //
 // info(path, address) -> dict: what the worker's info reports, without min / max; the grid
 //   read stays in memory for the bricks() call on it that follows (release() frees it).
@@ -306,7 +306,7 @@ py::tuple bricks(const std::string &path, const std::string &address, int i0, in
 }
 
 // Writes one grid as OpenVDB's own library does, with the compression chosen: files of
-// every kind the readers must take (tests/test_vdb_reader.py; pyopenvdb cannot choose).
+// every kind the readers must take (tests/grids/test_vdb_reader.py; pyopenvdb cannot choose).
 // data: float32 (z, y, x) or (z, y, x, 3); voxel (i, j, k) of the file = data[k, j, i]
 // placed at ijk + (i, j, k); zero values stay inactive background.
 void write_grid(const std::string &path, const std::string &name,

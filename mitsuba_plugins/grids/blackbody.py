@@ -22,7 +22,7 @@ on :math:`x` alone: :math:`\hat B = (x / x_{max})^5 (e^{x_{max}} - 1) / (e^x - 1
 
 The RGB/Y table covers :data:`T_MIN`..:data:`T_MAX` at :data:`TABLE_SIZE` temperatures
 spaced evenly in :math:`\log T` and is interpolated linearly in :math:`\log T` (at most
-1e-4 relative error against the integral, tests/test_studio_volumes.py); a grid whose temperature
+1e-4 relative error against the integral, tests/grids/test_fire_and_colour_grids.py); a grid whose temperature
 reaches above :data:`T_MAX` is refused when it is loaded.
 
 This module binds no Dr.Jit type at import.

@@ -24,7 +24,7 @@ ROUNDING = 1e-6
 
 #: ... and on a product of interpolated factors (spectral RGB grids: two blends, their
 #: product and the spectrum's evaluation each round; measured: 4.6e-7 above a bound with
-#: ROUNDING alone, tests/test_majorant.py in llvm_ad_spectral)
+#: ROUNDING alone, tests/tracking/test_majorant.py in llvm_ad_spectral)
 PRODUCT_ROUNDING = 1e-5
 
 

@@ -7,11 +7,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.grids import placement
-from mitsuba_plugins.grids import gridio
-from mitsuba_plugins.params import PluginParameterError
-from mitsuba_plugins.grids.spectra import MODEL_CHANNELS, GridValues, model_range, probe_wavelengths
+from mitsuba_plugins.grids import gridio, placement
+from mitsuba_plugins.grids.spectra import (GridValues, MODEL_CHANNELS, model_range,
+                                           probe_wavelengths)
 from mitsuba_plugins.grids.stores import Bounds, built_bounds, new_builder
+from mitsuba_plugins.params import PluginParameterError
 
 
 #: margin (local units) of majorant cells when a nested volume's transform is read

@@ -8,8 +8,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.grids import stores
-from mitsuba_plugins.grids import blackbody
+from mitsuba_plugins.grids import blackbody, stores
 from mitsuba_plugins.grids.nested_volume import volume_max
 from mitsuba_plugins.params import Params, PluginParameterError
 

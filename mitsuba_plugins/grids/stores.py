@@ -19,15 +19,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.grids import placement
-from mitsuba_plugins.grids import bricks
-from mitsuba_plugins.grids import gridio
-from mitsuba_plugins.grids.bounds import (MARGIN, ROUNDING, MajorantBuilder,
-                                          ProductMajorantBuilder, resolution_for,
-                                          voxel_ranges)
-from mitsuba_plugins.params import PluginParameterError
+from mitsuba_plugins.grids import bricks, gridio, placement
+from mitsuba_plugins.grids.bounds import (MARGIN, MajorantBuilder, ProductMajorantBuilder,
+                                          ROUNDING, resolution_for, voxel_ranges)
 from mitsuba_plugins.grids.spectra import GridValues
 from mitsuba_plugins.grids.value_checks import ValueCheck, check_dense_memory, checked_edit
+from mitsuba_plugins.params import PluginParameterError
 
 #: elements moved to device memory per scatter while loading (bounds the extra memory)
 UPLOAD_CHUNK = 1 << 18
@@ -102,7 +99,7 @@ class DenseStore:
     def traverse(self, callback) -> None:
         if not self.values.converted:
             # differentiable: prbvolpath's gradient w.r.t. it equals the one with
-            # heterogeneous + gridvolume (tests/test_gradients.py). Not exposed where the
+            # heterogeneous + gridvolume (tests/integrators/test_gradients.py). Not exposed where the
             # stored values are not the file's (RGB upsampled in spectral variants,
             # reduced to luminance in mono).
             callback.put("data", self.data, mi.ParamFlags.Differentiable)

@@ -29,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_plugins.grids.gridheader import GridHeader, check_shape
-from mitsuba_plugins.grids.gridheader import fail as _fail
+from mitsuba_plugins.grids.gridheader import GridHeader, check_shape, fail as _fail
 
 WORKER = Path(__file__).with_name("_vdb_worker.py")
 #: where OpenVDB's Python module is looked for (the variable, if set, alone)
@@ -326,7 +325,7 @@ def iter_vdb_bricks(header):
     header's box (:mod:`mitsuba_plugins.grids.bricks`). Cut by the compiled leaf-level reader
     (:func:`leaf_reader`) from OpenVDB's leaf nodes and tiles where it is built, else by
     the worker in tiles (it never holds a whole row of the box; only stored bricks cross
-    the pipe). Both give the same bricks (tests/test_vdb_reader.py)."""
+    the pipe). Both give the same bricks (tests/grids/test_vdb_reader.py)."""
     reader = leaf_reader()
     if reader is not None:
         yield from _leaf_bricks(reader, header)

@@ -22,9 +22,9 @@ import numpy as np
 
 from mitsuba_plugins import output
 from mitsuba_plugins.tools import metrics, stats
+from mitsuba_plugins.tools.integrator_specs import (builtin_twin, check_reference, ignores,
+                                                    is_ours, label, reference_for)
 from mitsuba_plugins.tools.scenes import load_scene, scene_digest
-from mitsuba_plugins.tools.integrator_specs import (builtin_twin, check_reference, ignores, is_ours,
-                                                   label, reference_for)
 
 REFERENCE_PASSES = 16
 

@@ -1,7 +1,7 @@
 """Gradient checks: derivatives of a render's mean along parameter directions, by our
 integrators' gradient renders (backward and forward mode) and by central finite
 differences of the primal render with common random numbers (the same seed on both
-sides). Used by tests/test_gradients.py and benchmarks/inverse.py.
+sides). Used by tests/integrators/test_gradients.py and benchmarks/inverse.py.
 
 A *direction* maps parameter keys of ``mi.traverse(scene)`` to arrays of their shape
 (or scalars). The derivative of ``mean(image)`` along it is ``<grad, direction>``.
@@ -136,3 +136,11 @@ def welch(a, b) -> tuple:
         return (0.0, 1.0) if a.mean() == b.mean() else (np.inf, 0.0)
     result = stats.ttest_ind(a, b, equal_var=False)
     return float(result.statistic), float(result.pvalue)
+
+
+def smooth_direction(shape, seed=0) -> np.ndarray:
+    """A smooth random field of ``shape`` in [0.2, 1] (a blurred Gaussian field): a
+    direction for the derivative along a density grid."""
+    from scipy.ndimage import gaussian_filter
+    v = gaussian_filter(np.random.default_rng(seed).normal(size=shape), 1.0)
+    return 0.6 + 0.4 * v / np.abs(v).max()

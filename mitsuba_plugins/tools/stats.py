@@ -13,7 +13,7 @@ probability ~1e-3 instead of ~3e-6: equal estimators failed 0 to 0.16% of pixel 
 of the 0.25% allowed (six seed pairs of volpath_raymarch against volpath on
 smoke_heterogeneous, llvm_ad_rgb) and 0.26% once on cuda_ad_rgb. With the t threshold
 (|t| > 8.3 at 11 df) the same seven llvm comparisons failed 0%; a 2% bias still fails
-(tests/test_stats.py), through the block and image-mean tests.
+(tests/tools/test_stats.py), through the block and image-mean tests.
 """
 from __future__ import annotations
 

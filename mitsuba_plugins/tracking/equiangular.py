@@ -26,9 +26,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.trackers import medium_interaction
 from mitsuba_plugins.instrument import settings
 from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
+from mitsuba_plugins.tracking.trackers import medium_interaction
 
 #: Smallest distance from the ray to the light used in the density (a light on the
 #: ray's line would give a delta-like density).

@@ -16,10 +16,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.trackers import index_channel, medium_interaction
-from mitsuba_plugins.tracking.null_collision import NullCollisionRule
 from mitsuba_plugins.tracking.homogeneous import FreeFlight
+from mitsuba_plugins.tracking.null_collision import NullCollisionRule
 from mitsuba_plugins.tracking.replay import attached
+from mitsuba_plugins.tracking.trackers import index_channel, medium_interaction
 
 VARIANT = mi.variant()
 

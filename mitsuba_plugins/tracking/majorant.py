@@ -21,9 +21,9 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_plugins import instrument
-from mitsuba_plugins.tracking.majorant_grid import MajorantGrid
-from mitsuba_plugins.params import PluginParameterError
 from mitsuba_plugins.grids.bounds import MajorantBuilder, pool
+from mitsuba_plugins.params import PluginParameterError
+from mitsuba_plugins.tracking.majorant_grid import MajorantGrid
 
 VARIANT = mi.variant()
 

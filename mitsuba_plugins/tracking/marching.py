@@ -28,9 +28,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.tracking.homogeneous import FreeFlight, spectral_flight_weight
 from mitsuba_plugins.tracking.majorant_grid import DDAState
+from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
 from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()

@@ -18,7 +18,7 @@ class TrackedMedium(Protocol):
     A medium class that sets ``PROVIDES_TRACKING = True`` (``grid_medium``) promises:
 
     * ``majorant_grid``: a :class:`~mitsuba_plugins.tracking.majorant_grid.MajorantGrid` whose segments
-      bound ``eval_sigma_t`` along any ray (tests/test_majorant.py, test_sparse.py), and
+      bound ``eval_sigma_t`` along any ray (tests/tracking/test_majorant.py, test_sparse_storage.py), and
       ``march_grid``, one as tight as the medium has (it may equal ``majorant_grid``),
       for marches in ``majorant`` step mode;
     * ``refinement``: ``(voxels per local unit, trilinear)`` when a segment can be hot

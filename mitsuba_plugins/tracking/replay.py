@@ -34,9 +34,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.tracking.trackers import medium_interaction
 from mitsuba_plugins.tracking.null_collision import NullCollisionRule
 from mitsuba_plugins.tracking.shadow_rays import shadow_pieces
+from mitsuba_plugins.tracking.trackers import medium_interaction
 from mitsuba_plugins.tracking.walk import walk
 
 VARIANT = mi.variant()

@@ -6,9 +6,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.tracking.trackers import (diagonal, medium_interaction, probe_interaction,
-                                      tracker_for)
 from mitsuba_plugins.tracking.homogeneous import homogeneous_transmittance
+from mitsuba_plugins.tracking.trackers import (diagonal, medium_interaction,
+                                               probe_interaction, tracker_for)
 
 VARIANT = mi.variant()
 

@@ -18,15 +18,15 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_plugins import instrument
+from mitsuba_plugins.grids.spectra import probe_wavelengths
 from mitsuba_plugins.tracking import majorant
 from mitsuba_plugins.tracking.majorant_grid import MajorantGrid
-from mitsuba_plugins.grids.spectra import probe_wavelengths
 from mitsuba_plugins.tracking.medium_protocol import MediumProperties
 
 VARIANT = mi.variant()
 #: Fewest majorant cells along the grid's finest axis at which the walk crosses event-free
 #: pieces in its tight loop (:attr:`Tracker.tight_loop`). Chosen on kernel times at 32x32,
-#: 16 spp (benchmarks/refactor/crossing_loop.py): with the loop forced on, the 8 grids of
+#: 16 spp (``git show aa26248:benchmarks/refactor/crossing_loop.py``): with the loop forced on, the 8 grids of
 #: 8 or 16 cells ran 0.88-0.99x as long as without, the 11 of 4 cells 0.95-1.02x, the 3 of
 #: one cell 1.00-1.03x.
 TIGHT_LOOP_CELLS = 8
@@ -66,7 +66,7 @@ class Tracker:
         :data:`TIGHT_LOOP_CELLS` cells along an axis: it saves a density lookup per cell
         crossed without a tentative collision, but its loop costs ~2 ms of tracing per
         render and, on coarse grids (whose rays cross few cells), about what it saves
-        (issue 29, ``benchmarks/refactor/crossing_loop.py``). ``instrument.crossing_loop``
+        (issue 29, ``git show aa26248:benchmarks/refactor/crossing_loop.py``). ``instrument.crossing_loop``
         overrides."""
         forced = instrument.settings.crossing_loop
         if forced is not None:

@@ -1,19 +1,12 @@
-"""Free flights and transmittance in participating media (docs/method.md sections 7-9).
-
-* Homogeneous media, analytic (no loop): :func:`homogeneous_free_flight` (chromatic
-  extinction weighted by the balance heuristic over the channel that drew the path) and
-  :func:`homogeneous_transmittance`.
-* Heterogeneous media: rules of the one walk (:func:`mitsuba_plugins.tracking.walk.walk`) over a
-  medium's majorant segments. :class:`NullCollisionRule` samples tentative collisions
-  (one exponential optical depth carried across segments, so crossing a cell costs no
-  random number); the rules differ only in what a collision does:
-
-  - free flights (:mod:`mitsuba_plugins.tracking.free_flights`: delta and decomposition tracking,
-    table ``FREE_FLIGHTS``);
-  - :class:`RatioTracking`, :class:`ResidualRatioTracking` (Novak, Selle and Jarosz 2014,
-    the majorant grid's per-cell minorant as control extinction) and
-    :class:`TrackLength`: shadow-ray transmittance, listed by name in
-    :data:`TRANSMITTANCE_ESTIMATORS`.
+"""Shadow-ray transmittance through heterogeneous media (docs/method.md section 9): rules of
+the one walk (:func:`mitsuba_plugins.tracking.walk.walk`) that subclass
+:class:`~mitsuba_plugins.tracking.null_collision.NullCollisionRule`. They differ only in
+what a tentative collision does: :class:`RatioTracking`, :class:`ResidualRatioTracking`
+(Novak, Selle and Jarosz 2014, the majorant grid's per-cell minorant as control
+extinction) and :class:`TrackLength`, listed by name in :data:`TRANSMITTANCE_ESTIMATORS`
+(``volpath_delta``'s ``transmittance`` parameter). Homogeneous media need no rule
+(:func:`mitsuba_plugins.tracking.homogeneous.homogeneous_transmittance`); the free flights
+are :mod:`mitsuba_plugins.tracking.free_flights`.
 
 A new estimator is one rule class, its entry in its table and its tests.
 """
@@ -22,9 +15,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.tracking.null_collision import NullCollisionRule
 from mitsuba_plugins.tracking.trackers import Tracker, medium_interaction
 from mitsuba_plugins.tracking.walk import walk
-from mitsuba_plugins.tracking.null_collision import NullCollisionRule
 
 VARIANT = mi.variant()
 

@@ -15,28 +15,16 @@ Segment iterators (``start`` / ``next``):
 * the march cells of :class:`mitsuba_plugins.tracking.marching.Marcher`.
 
 An iterator's state carries ``t_end`` (end of the current piece), and for majorant
-segments ``sigma_maj`` and ``sigma_min`` (bounds of the extinction on it). A rule
-offers:
-
-* ``segments``: the iterator it walks; ``label``: the loop's name;
-* ``start(tracker, ray, t_in, t_out, sampler, active)``: its loop state (a
-  ``DRJIT_STRUCT``), drawing what it draws before the loop;
-* ``step(tracker, ray, sampler, seg, t, state, active) -> (t, state, active)``: one
-  event inside the current piece, ``[t, seg.t_end]``;
-* ``finish(t, state, t_out, entered)``: the result;
-* ``budget``: the name of the state field holding the weight that the work budget
-  scales (None: the rule's work is bounded by itself);
-* optionally ``pass_piece(tracker, ray, seg, t, state, active) -> (passed, t, state)``:
-  cross the rest of the current piece on the lanes where nothing happens on it (the
-  null-collision rules). The walk then crosses such pieces in a tight inner loop with
-  :meth:`MajorantSegments.cross` (no density lookup in it) and calls ``step`` only for
-  an event; the random numbers drawn and the images are the same as without it.
+segments ``sigma_maj`` and ``sigma_min`` (bounds of the extinction on it). A rule is a
+:class:`WalkRule`.
 
 Homogeneous media never reach a walk: their flights and transmittance are analytic
-(:mod:`mitsuba_plugins.tracking.transmittance`), so a scene without heterogeneous media traces no
-loop at all.
+(:mod:`mitsuba_plugins.tracking.homogeneous`), so a scene without heterogeneous media
+traces no loop at all.
 """
 from __future__ import annotations
+
+from typing import Optional, Protocol
 
 import drjit as dr
 import mitsuba as mi
@@ -63,8 +51,37 @@ PIECE_SLACK = 1e-5 if not VARIANT.startswith("cuda") else 2.0 ** -7
 #: (13 sqrt(1e8)).
 WORK_BUDGET = 1 << 18
 WORK_SURVIVAL = 0.5
+class WalkRule(Protocol):
+    """What :func:`walk` asks of a rule (free flights, transmittance, marches).
+
+    * ``segments``: the iterator it walks; ``label``: the loop's name;
+    * ``budget``: the name of the state field holding the weight that the work budget
+      scales (None: the rule's work is bounded by itself);
+    * :meth:`start`, :meth:`step`, :meth:`finish` below;
+    * optionally ``pass_piece(tracker, ray, seg, t, state, active) -> (passed, t,
+      state)``: cross the rest of the current piece on the lanes where nothing happens
+      on it (the null-collision rules). The walk then crosses such pieces in a tight
+      inner loop with :meth:`MajorantSegments.cross` (no density lookup in it) and
+      calls ``step`` only for an event; the random numbers drawn and the images are
+      the same as without it.
+    """
+    segments: object
+    label: str
+    budget: Optional[str]
+
+    def start(self, tracker, ray, t_in, t_out, sampler, active):
+        """The rule's loop state (a ``DRJIT_STRUCT``), drawing what it draws first."""
+
+    def step(self, tracker, ray, sampler, seg, t, state, active):
+        """One event inside the current piece ``[t, seg.t_end]``: ``(t, state, active)``."""
+
+    def finish(self, t, state, t_out, entered):
+        """The result of the walk."""
+
+
 @dr.syntax
-def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule, active: mi.Bool):
+def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule: WalkRule,
+         active: mi.Bool):
     """Walk ``ray`` over ``[0, t_max]`` through ``tracker``'s medium, applying ``rule``
     (see the module docstring); returns ``rule.finish(...)``."""
     t_in, t_out = tracker.bounds(ray, t_max)
