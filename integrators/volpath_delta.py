@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from mitsuba_plugins import differentiable
+from mitsuba_plugins import differentiable, guided_render
 from mitsuba_plugins.tracking.free_flights import FREE_FLIGHTS
 from mitsuba_plugins.tracking.replay import GRADIENT_ESTIMATORS
 from mitsuba_plugins.tracking.scene_media import SceneMedia
@@ -25,6 +25,8 @@ DEFAULT_SHADOW_ROULETTE = 0.2
 MAX_SHADOW_ROULETTE = 0.999
 #: Chosen on benchmarks/results/inverse.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
+#: values of ``guiding``
+GUIDING = ("off", "volumes")
 
 
 class VolpathDelta(VolumetricIntegrator):
@@ -86,6 +88,25 @@ class VolpathDelta(VolumetricIntegrator):
          stream, Nimier-David et al. 2022) or ``delta`` (differentiate the
          delta-tracking estimator as ``prbvolpath`` does: null collisions weigh
          ``sigma_n(theta) / sigma_n``). Primal renders do not use it. (Default: ``drt``)
+     * - guiding
+       - |string|
+       - Path guiding (docs/method.md section 13): ``off``, or ``volumes``: scattering
+         directions in media resampled among phase-function samples in proportion to a
+         field learnt during the render (a grid of cells, one von Mises-Fisher lobe
+         each), within one ``mi.render`` call (training passes, then the rest of the
+         samples guided). Primal renders only. (Default: ``off``)
+     * - guiding_candidates
+       - |int|
+       - Phase-function samples among which a guided vertex resamples its direction in
+         proportion to the learnt incident radiance, in [1, 32]. (Default: 4)
+     * - guiding_training
+       - |float|
+       - Largest share of the samples spent in training passes, in [0, 0.9].
+         (Default: 0.25)
+     * - guiding_resolution
+       - |int|
+       - Cells per axis of the guiding field over the media's bounds, in [1, 32].
+         (Default: 4)
      * - hide_emitters
        - |bool|
        - Hide emitters seen directly (also through media). (Default: false)
@@ -123,7 +144,8 @@ class VolpathDelta(VolumetricIntegrator):
 
     NAME = "volpath_delta"
     PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
-                  "equiangular")
+                  "equiangular", "guiding", "guiding_candidates", "guiding_training",
+                  "guiding_resolution")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -135,6 +157,13 @@ class VolpathDelta(VolumetricIntegrator):
         self.equiangular = p.bool("equiangular", False)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
+        self.guiding = p.choice("guiding", "off", GUIDING)
+        self.guiding_candidates = p.int("guiding_candidates", guided_render.CANDIDATES, lo=1,
+                                        hi=32)
+        self.guiding_training = p.float("guiding_training", guided_render.TRAINING, lo=0.0,
+                                        hi=0.9)
+        self.guiding_resolution = p.int("guiding_resolution", guided_render.RESOLUTION, lo=1,
+                                        hi=32)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
                                          TRANSMITTANCE_ESTIMATORS[self.transmittance])
 
@@ -145,6 +174,7 @@ class VolpathDelta(VolumetricIntegrator):
                 f"  shadow_roulette = {self.shadow_roulette:g},\n"
                 f"  equiangular = {self.equiangular},\n"
                 f"  gradient_estimator = {self.gradient_estimator},\n"
+                f"  guiding = {self.guiding},\n"
                 f"  hide_emitters = {self.hide_emitters}\n]")
 
 
@@ -160,6 +190,10 @@ class VolpathDelta(VolumetricIntegrator):
             raise NotImplementedError(
                 "volpath_delta: gradients need equiangular = false; the primal image is "
                 "the same estimate")
+        if self.guiding != "off":
+            raise NotImplementedError(
+                f"volpath_delta: gradients need guiding = 'off' (got '{self.guiding}'); "
+                "guided directions are not replayed")
         if self.free_flight != "delta":
             raise NotImplementedError(
                 f"volpath_delta: gradients need free_flight = 'delta' (got "
@@ -185,4 +219,21 @@ class TrackingStrategy(VolumeStrategy):
         return walk(tracker, ray, t_max, ctx.sampler, rule, active)
 
 
-mi.register_integrator("volpath_delta", lambda props: VolpathDelta(props))
+class GuidedVolpathDelta(VolpathDelta):
+    """``volpath_delta`` with ``guiding`` on: its render is the passes of
+    :func:`mitsuba_plugins.guided_render.render` (a class of its own, so that the
+    unguided plugin keeps Mitsuba's C++ render)."""
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not develop:
+            raise ValueError("volpath_delta: guiding renders develop the film "
+                             "(develop=True)")
+        return guided_render.render(self, scene, sensor, seed, spp)
+
+
+def _make(props: mi.Properties):
+    guided = props.has_property("guiding") and props["guiding"] != "off"
+    return (GuidedVolpathDelta if guided else VolpathDelta)(props)
+
+
+mi.register_integrator("volpath_delta", _make)

@@ -34,8 +34,11 @@ SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.tracking.majoran
                    "mitsuba_plugins.tracking.scene_media",
                    "mitsuba_plugins.tracking.replay",
                    "mitsuba_plugins.tracking.free_flights",
-                   "mitsuba_plugins.tracking.marching", "mitsuba_plugins.path_loop",
-                   "mitsuba_plugins.volume_loop", "mitsuba_plugins.differentiable")
+                   "mitsuba_plugins.tracking.marching",
+                   "mitsuba_plugins.guiding.sampling",
+                   "mitsuba_plugins.path_loop",
+                   "mitsuba_plugins.volume_loop", "mitsuba_plugins.differentiable",
+                   "mitsuba_plugins.guided_render")
 #: plugins that are not integrators, by kind
 KINDS = {"grid_medium": "medium"}
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.guiding.sampling import Records, resample
 from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
@@ -157,7 +158,8 @@ class VolumetricIntegrator(PathIntegrator):
 
 @dr.syntax
 def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None):
+                  medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None,
+                  guide=None):
     """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
     real collision in a medium or a surface (null surfaces included). ``integrator``
     supplies the settings (as in :func:`~mitsuba_plugins.path_loop.trace_surfaces`),
@@ -165,7 +167,11 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     ``replay`` (:class:`~mitsuba_plugins.tracking.replay.Replay`): the same path again,
     propagating derivatives (:mod:`mitsuba_plugins.tracking.replay`); returns ``(L, valid_ray,
-    tangent)``, the tangent being 0 in backward mode."""
+    tangent)``, the tangent being 0 in backward mode.
+
+    ``guide`` (:class:`~mitsuba_plugins.guided_render.GuidedPass`): scattering directions
+    in media resampled in proportion to the guiding field, and/or records that train it
+    (:mod:`mitsuba_plugins.guiding`)."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -193,6 +199,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
     grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
+    guided = guide is not None and guide.sampling    # directions from the field
+    recording = guide is not None and guide.recording
+    records = Records() if recording else None       # the field's training records
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
@@ -275,6 +284,12 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                                                on_surface)
         phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, scattered)
         wo_phase, phase_weight, phase_pdf_s = phase.sample(phase_ctx, mei, u1, u2, scattered)
+        if dr.hint(guided, mode="scalar"):
+            wo_phase, phase_weight, phase_pdf_s, f_wo = resample(
+                guide.field, phase, phase_ctx, mei, sampler, guide.candidates,
+                (wo_phase, phase_weight, phase_pdf_s), scattered)
+        elif dr.hint(recording, mode="scalar"):
+            f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
         f_l = dr.select(scattered, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
         p_dir = dr.select(scattered, phase_pdf, p_b)
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
@@ -293,6 +308,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                 vertex_value(ds.d, wo), active_em, vertex_value(wo_phase, bs.wo),
                 replay.L_primal - L, active_next & (scattered | (on_surface & ~mi.has_flag(
                     bs.sampled_type, mi.BSDFFlags.Delta))))
+
+        if dr.hint(recording, mode="scalar"):
+            records = records.add(guide.field, mei.p, wo_phase, L, beta, f_wo,
+                                  sampler.next_1d(), scattered & active_next)
 
         # ------------------------- throughput update -------------------------
         null = on_surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -323,4 +342,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     if dr.hint(replay is not None, mode="scalar"):
         return dr.select(valid_ray, L, 0.0), valid_ray, dr.select(valid_ray, grad, 0.0)
+    if dr.hint(recording, mode="scalar"):
+        records.flush(guide.field, L, mi.Bool(True))
     return dr.select(valid_ray, L, 0.0), valid_ray

@@ -534,6 +534,14 @@ def test_equiangular_gradients_are_refused():
     assert "volpath_delta: gradients need equiangular = false" in _messages(info.value)
 
 
+def test_guided_gradients_are_refused():
+    scene, params, key = _scene_and_key("volpath_delta")
+    integrator = mi.load_dict({"type": "volpath_delta", "guiding": "volumes"})
+    with pytest.raises(Exception) as info:
+        _differentiate(scene, params, key, integrator, "backward")
+    assert "volpath_delta: gradients need guiding = 'off'" in _messages(info.value)
+
+
 @pytest.mark.parametrize("key", ["light.emitter.radiance.value", "env.radiance.value"])
 def test_gradients_we_do_not_compute_are_refused(key):
     """Emitters: refused in one line naming the parameter, not 0. (Shapes' transforms go

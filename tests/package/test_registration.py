@@ -141,13 +141,15 @@ def test_jit_debug_option_reaches_llvm(tmp_path):
 
 #: docs/architecture.md's layers, bottom first: a module imports its own layer or below
 LAYERS = ("base", "grids", "tracking", "loops", "plugins", "tools")
-LOOPS = ("path_vertex", "path_loop", "volume_loop", "differentiable")
+LOOPS = ("path_vertex", "path_loop", "volume_loop", "differentiable", "guided_render")
 
 
 def _layer(module: str) -> str:
     parts = module.split(".")
     if len(parts) > 1 and parts[1] in ("grids", "tracking", "tools"):
         return parts[1]
+    if len(parts) > 1 and parts[1] == "guiding":      # the field: beside tracking
+        return "tracking"
     if len(parts) > 1 and parts[1] in ("integrators", "media"):
         return "plugins"
     return "loops" if len(parts) > 1 and parts[1] in LOOPS else "base"

@@ -1,0 +1,165 @@
+"""Does path guiding pay inside one ordinary render, training included? (issue 47)
+
+Each scene: a reference (``benchmarks.dense.REFERENCE`` at ``--ref-spp``), then
+:func:`benchmarks.dense.equal_time`: Mitsuba's ``volpath`` at ``--spp`` and each
+configuration of ``volpath_delta`` at the sample count that takes as long (its training
+passes inside that render: a guided render is one ``mi.render`` call), ``--runs``
+alternating renders each; efficiency = 1 / (mean relMSE x median time), its ratio to
+``volpath``'s and the relative MSE per sample. The scenes are split: the tuning set chose
+the defaults (``guiding_candidates``, ``guiding_resolution``, ``guiding_training``), the
+test set reports them.
+
+* tuning: a dense gray ball under a small light (sigma_t 20, albedo 0.95, HG 0.5), a fog
+  room lit through a hole in one wall (camera inside the fog);
+* test: the smooth smoke of scenes/smoke.xml under its area light, a camera inside a
+  forward-scattering cloud (HG 0.6), a strongly forward-scattering ball (HG 0.9), a dense
+  chromatic ball under an environment.
+
+``python3 -m benchmarks.guiding [--set tuning|test|both] [--configs a,b]`` writes
+``benchmarks/results/guiding.{md,json}``.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+from pathlib import Path
+
+from benchmarks import dense  # sets the variant
+from benchmarks.harness import device_model
+import mitsuba as mi
+
+from mitsuba_plugins import output
+from mitsuba_plugins.tools.scenes import camera, homogeneous, media_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {
+    "off": {"type": "volpath_delta"},
+    "guided": {"type": "volpath_delta", "guiding": "volumes"},
+    "guided_c8": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 8},
+    "guided_r8": {"type": "volpath_delta", "guiding": "volumes", "guiding_resolution": 8},
+    "guided_t50": {"type": "volpath_delta", "guiding": "volumes", "guiding_training": 0.5},
+}
+
+
+def _rect(center, axis: str, sign: int, size, bsdf=None, emitter=None) -> dict:
+    T = mi.ScalarTransform4f
+    t = T().translate(center)
+    if axis == "x":
+        t = t @ T().rotate([0, 1, 0], 90 * sign)
+    elif axis == "y":
+        t = t @ T().rotate([1, 0, 0], -90 * sign)
+    elif sign < 0:
+        t = t @ T().rotate([0, 1, 0], 180)
+    d = {"type": "rectangle", "to_world": t @ T().scale([size[0] / 2, size[1] / 2, 1])}
+    if bsdf:
+        d["bsdf"] = bsdf
+    if emitter:
+        d["emitter"] = emitter
+    return d
+
+
+def gap_room(res: int) -> mi.Scene:
+    """A closed room of white walls filled with fog (sigma_t 0.5, albedo 0.9), lit only
+    through a 0.4-wide hole in one wall by an area light outside; the camera in the fog."""
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}
+    fog = {"type": "homogeneous", "sigma_t": 0.5, "albedo": 0.9}
+    h = 0.2
+    sensor = camera(res, origin=(-0.8, 0.0, 0.0), target=(1.0, 0.0, 0.0), fov=70.0, medium=fog)
+    return mi.load_dict({
+        "type": "scene", "sensor": sensor,
+        "fog": {"type": "cube", "to_world": mi.ScalarTransform4f().scale(0.98),
+                "bsdf": {"type": "null"}, "interior": fog},
+        "floor": _rect([0, -1, 0], "y", 1, (2, 2), white),
+        "ceiling": _rect([0, 1, 0], "y", -1, (2, 2), white),
+        "back": _rect([-1, 0, 0], "x", 1, (2, 2), white),
+        "left": _rect([0, 0, -1], "z", 1, (2, 2), white),
+        "right": _rect([0, 0, 1], "z", -1, (2, 2), white),
+        "wall_top": _rect([1, (1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
+        "wall_bottom": _rect([1, -(1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
+        "wall_left": _rect([1, 0, -(1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
+        "wall_right": _rect([1, 0, (1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
+        "light": _rect([1.6, 0, 0], "x", -1, (0.8, 0.8),
+                       emitter={"type": "area", "radiance": {"type": "rgb", "value": 40.0}}),
+    })
+
+
+def _inside(res: int) -> mi.Scene:
+    fog = homogeneous(0.6, albedo=0.9, g=0.6)
+    return media_scene(extra={"fog": {"type": "sphere", "radius": 6.0, "bsdf": {"type": "null"},
+                                      "interior": fog}},
+                       sensor=camera(res, medium=fog), env=0)
+
+
+SCENES = {
+    "dense_ball": ("tuning", lambda res: media_scene(homogeneous(20.0, albedo=0.95, g=0.5),
+                                                     sensor=camera(res), env=0)),
+    "gap_room": ("tuning", gap_room),
+    "smoke": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "smoke.xml"),
+                                               res=str(res))),
+    "camera_inside": ("test", _inside),
+    "forward_ball": ("test", lambda res: media_scene(homogeneous(3.0, albedo=0.95, g=0.9),
+                                                     sensor=camera(res), env=0)),
+    "chromatic_dense": ("test", lambda res: media_scene(
+        homogeneous([8.0, 16.0, 30.0], albedo=0.95, g=0.3), sensor=camera(res), env=0.5)),
+}
+
+
+def markdown(result: dict) -> str:
+    cfg = result["config"]
+    lines = ["# Path guiding: does it pay inside one render, training included?", "",
+             f"Measured {result['date']} on {result['cpu']} ({result['variant']}) by "
+             f"`python3 -m benchmarks.guiding {cfg['argv']}`: res {cfg['res']}, volpath at "
+             f"{cfg['spp']} spp, {cfg['runs']} alternating runs, reference {cfg['ref_spp']} "
+             "spp. Efficiency ratio: ours / volpath at equal time (90% bootstrap interval); "
+             "relMSE/sample: ours / volpath per sample (below 1: less variance).", "",
+             "| scene | set | " + " | ".join(cfg["configs"]) + " |",
+             "|---|---|" + "---|" * len(cfg["configs"])]
+    for name, r in result["scenes"].items():
+        cells = []
+        for c in cfg["configs"]:
+            e = r["efficiency"][c]
+            lo, hi = e["efficiency_ratio_90"]
+            cells.append(f"{e['efficiency_ratio']:.2f}x [{lo:.2f}, {hi:.2f}], "
+                         f"{e['rel_mse_per_sample_ratio']:.2f}/sample, {e['spp']} spp")
+        lines.append(f"| {name} | {r['set']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--runs", type=int, default=4)
+    ap.add_argument("--ref-spp", type=int, default=2048)
+    ap.add_argument("--set", choices=("tuning", "test", "both"), default="both")
+    ap.add_argument("--configs", default="off,guided")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "guiding"))
+    args = ap.parse_args()
+    configs = {k: CONFIGS[k] for k in args.configs.split(",")}
+    result = {"date": datetime.date.today().isoformat(), "cpu": device_model(dense.VARIANT),
+              "variant": dense.VARIANT, "scenes": {},
+              "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
+                         "ref_spp": args.ref_spp, "configs": list(configs),
+                         "argv": " ".join(sys.argv[1:])}}
+    out = Path(args.out)
+    for name, (which, make) in SCENES.items():
+        if args.set not in ("both", which):
+            continue
+        scene = make(args.res)
+        ref = dense.reference(scene, args.ref_spp)
+        eff = dense.equal_time(scene, configs, args.spp, args.runs, ref)
+        for k in configs:
+            eff[k]["rel_mse_per_sample_ratio"] = (eff[k]["rel_mse"] * eff[k]["spp"]) / \
+                (eff["builtin"]["rel_mse"] * eff["builtin"]["spp"])
+        result["scenes"][name] = {"set": which, "efficiency": eff}
+        print(name, ", ".join(f"{k} {eff[k]['efficiency_ratio']:.2f}x "
+                              f"(relMSE/sample {eff[k]['rel_mse_per_sample_ratio']:.2f})"
+                              for k in configs), flush=True)
+        output.write_json(out.with_suffix(".json"), result, indent=1)
+        output.write_text(out.with_suffix(".md"), markdown(result))
+    print(markdown(result))
+
+
+if __name__ == "__main__":
+    main()

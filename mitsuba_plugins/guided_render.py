@@ -1,0 +1,114 @@
+"""One guided render of ``volpath_delta`` (``guiding`` not ``off``): passes that learn where
+light comes from and then guide, all inside one ``mi.render`` call (docs/method.md
+section 13).
+
+The schedule: training passes of doubling sample counts (from ``spp / 128``, at least 1)
+while their sum stays within ``guiding_training`` of ``spp``, then one pass with the rest.
+The first pass samples the phase function alone; every pass records its medium vertices
+into the field except the last; the field is fixed within a pass (folded in between), so
+each pass is an unbiased estimate. The passes are combined in proportion to their sample
+counts: fixed weights, so the combination is unbiased too (weights from the passes'
+measured variances would favour the guided passes but depend on the data).
+
+Each pass is Mitsuba's own Python render of an ``ADIntegrator`` (film, rays, one wavefront),
+so a guided render never re-enters the C++ ``SamplingIntegrator.render`` from Python.
+"""
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_plugins.guiding.field import GuidingField, media_bounds
+from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.volume_loop import trace_volumes
+
+_common = mi.ad.integrators.common
+VARIANT = mi.variant()
+
+#: defaults of volpath_delta's guiding_candidates, guiding_training, guiding_resolution
+CANDIDATES = 4
+TRAINING = 0.25
+RESOLUTION = 4
+
+
+class GuidedPass:
+    """What one pass hands the path loop: the ``field`` (None before it has learnt
+    anything), whether it samples from it and whether it records into it."""
+
+    def __init__(self, field, sampling: bool, recording: bool, candidates: int):
+        self.field, self.sampling, self.recording = field, sampling, recording
+        self.candidates = candidates
+
+
+class _PassRender:
+    """What ``ADIntegrator.render`` calls on ``self``, for one pass."""
+    prepare = _common.ADIntegrator.prepare
+    sample_rays = _common.ADIntegrator.sample_rays
+    render = _common.ADIntegrator.render
+
+    def __init__(self, integrator, sensor: mi.Sensor, guide: GuidedPass):
+        self.integrator, self.sensor, self.guide = integrator, sensor, guide
+
+    def aov_names(self):
+        return []
+
+    def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
+        integrator = self.integrator
+        medium = self.sensor.get_medium()
+        medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
+        active = mi.Bool(active)
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+            L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
+                                     medium, SceneMedia(scene), active, guide=self.guide)
+        return integrator.sample_guard(L, active), valid, [], None
+
+
+def schedule(spp: int, training: float) -> list:
+    """Sample counts of the passes: doubling training passes, then the rest."""
+    passes, spent, n = [], 0, max(1, spp // 128)
+    while spent + n <= training * spp and spent + n < spp:
+        passes.append(n)
+        spent += n
+        n *= 2
+    return passes + [spp - spent]
+
+
+class GuidingReport:
+    """What the last guided render did (for benchmarks and ``to_string``)."""
+
+    def __init__(self):
+        self.passes, self.training_seconds, self.cells_guided, self.memory = [], 0.0, 0, 0
+
+
+def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.TensorXf:
+    """The guided render (see the module's docstring)."""
+    if isinstance(sensor, int):
+        sensor = scene.sensors()[sensor]
+    if spp == 0:
+        spp = sensor.sampler().sample_count()
+    report = integrator.guiding_report = GuidingReport()
+    plan = schedule(spp, integrator.guiding_training)
+    if not SceneMedia(scene).any or len(plan) == 1:
+        # nothing to guide (no medium), or too few samples to learn from: one plain pass
+        report.passes = [spp]
+        return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
+    field = GuidingField(media_bounds(scene), integrator.guiding_resolution)
+    report.memory = field.memory()
+    image, t0 = None, time.perf_counter()
+    for k, n in enumerate(plan):
+        last = k == len(plan) - 1
+        if last:
+            report.training_seconds = time.perf_counter() - t0
+        guide = GuidedPass(field, sampling=k > 0, recording=not last,
+                           candidates=integrator.guiding_candidates)
+        pass_seed = seed if k == 0 else \
+            int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
+        img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)
+        image = img * (n / spp) if image is None else image + img * (n / spp)
+        if not last:
+            dr.eval(image)
+            report.cells_guided = field.update()
+        report.passes.append(n)
+    return image

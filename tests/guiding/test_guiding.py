@@ -1,0 +1,168 @@
+"""Path guiding (``volpath_delta``'s ``guiding``, docs/method.md section 13): the field's
+pdf is the density of its own samples (chi-square over equal-area bins), guided renders
+estimate the same image as unguided ones (docs/validation.md's Welch z-tests, disjoint
+seeds) and the furnace's analytic 1 (t-test), in every variant the suite runs; training
+learns where the light is; bad parameters are refused (gradient renders:
+tests/integrators/test_gradients.py)."""
+from __future__ import annotations
+
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+from scipy import stats as scipy_stats
+
+from helpers import (assert_mean_equals, assert_same_expectation, cached_estimate, camera, grid,
+                     homogeneous, load, media_scene, render)
+from mitsuba_plugins.guiding.field import GuidingField
+
+GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
+
+
+def _field_with_lobe(mu, r, records=1000):
+    """A 2^3 field whose cell 0 has the lobe of mean cosine ``r`` around ``mu``."""
+    field = GuidingField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2)
+    sums = np.zeros((4, field.cells))
+    sums[0, 0] = 1.0
+    sums[1:, 0] = r * np.asarray(mu) / np.linalg.norm(mu)
+    field.acc = [mi.Float(s.astype(np.float32)) for s in sums]
+    field.acc_records = mi.UInt32(np.full(field.cells, records, np.uint32))
+    assert field.update() == (1 if r > 0 else 0)
+    return field
+
+
+@pytest.mark.parametrize("r", [0.0, 0.5, 0.85])
+def test_field_pdf_is_the_density_of_its_samples(r):
+    """Chi-square test (alpha 1e-3) of 2^20 samples over 8 x 16 equal-area bins against the
+    pdf integrated over each bin (16 x 16 midpoints per bin); the pdf integrates to 1."""
+    field = _field_with_lobe([0.3, -0.5, 0.8], r)
+    n = 1 << 20
+    rng = np.random.default_rng(7)
+    u = mi.Point2f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(2)))
+    d = np.array(field.sample(mi.UInt32(0), u)).reshape(3, -1)
+    assert np.allclose(np.linalg.norm(d, axis=0), 1.0, atol=1e-5)
+    nz, nphi = 8, 16
+    phi = np.mod(np.arctan2(d[1], d[0]), 2 * np.pi)
+    bins = np.minimum(((d[2] + 1) / 2 * nz).astype(int), nz - 1) * nphi + \
+        np.minimum((phi / (2 * np.pi) * nphi).astype(int), nphi - 1)
+    observed = np.bincount(bins, minlength=nz * nphi)
+    m = 16                                      # midpoints per bin and axis
+    z = -1 + 2 * (np.arange(nz * m) + 0.5) / (nz * m)
+    p = 2 * np.pi * (np.arange(nphi * m) + 0.5) / (nphi * m)
+    Z, P = np.meshgrid(z, p, indexing="ij")
+    s = np.sqrt(1 - Z * Z)
+    dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
+                         (s * np.cos(P), s * np.sin(P), Z)))
+    pdf = np.array(field.pdf(mi.UInt32(np.zeros(Z.size, np.uint32)), dirs)).reshape(Z.shape)
+    cell_area = 4 * np.pi / Z.size
+    mass = (pdf * cell_area).reshape(nz, m, nphi, m).sum(axis=(1, 3)).ravel()
+    assert mass.sum() == pytest.approx(1.0, abs=2e-3)
+    expected = mass / mass.sum() * n
+    chi2 = float(((observed - expected) ** 2 / expected).sum())
+    assert scipy_stats.chi2.sf(chi2, nz * nphi - 1) > 1e-3, chi2
+
+
+def _dense_ball():
+    return media_scene(homogeneous(8.0, albedo=0.95, g=0.5), env=0)
+
+
+def _chromatic_ball():
+    return media_scene(homogeneous([2.0, 5.0, 9.0], albedo=0.9, g=0.3))
+
+
+def _smoke():
+    return media_scene(grid(scale=20.0, albedo=0.9))
+
+
+def _camera_inside():
+    fog = homogeneous(0.6, albedo=0.9, g=0.6)
+    return media_scene(extra={"fog": {"type": "sphere", "radius": 6.0, "bsdf": {"type": "null"},
+                                      "interior": fog}},
+                       sensor=camera(medium=fog), env=0.4)
+
+
+CASES = {"dense_ball": _dense_ball, "chromatic_ball": _chromatic_ball, "smoke": _smoke,
+         "camera_inside": _camera_inside}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_guided_renders_estimate_the_same_image(case):
+    """Guided (training passes included) against unguided ``volpath_delta``, 8 passes of 64
+    spp each against 16 of 64, disjoint seeds; max_depth 16."""
+    key = f"guiding:{case}"
+    a = cached_estimate(key, CASES[case], {**GUIDED, "max_depth": 16}, passes=8, spp=64,
+                        seed=2000)
+    b = cached_estimate(key, CASES[case], {"type": "volpath_delta", "max_depth": 16},
+                        passes=16, spp=64)
+    assert_same_expectation(a, b, f"guiding-{case}")
+
+
+def test_guided_open_furnace():
+    """scenes/furnace_env.xml's analytic answer (its header: image mean 0.8), as
+    tests/integrators/test_furnace.py checks every integrator."""
+    img = render(load("furnace_env", res=32), GUIDED, spp=64, seed=5)
+    assert_mean_equals(img, 0.8, "guiding-furnace")
+
+
+def test_training_learns_where_the_light_is():
+    """In a dense ball lit by one small light, the lobes of the cells nearest the light
+    point toward it (mean cosine with the direction to the light above 0.5, over the
+    cells with records on the light's side)."""
+    from mitsuba_plugins.guiding import field as field_module
+    fields = []
+    update = field_module.GuidingField.update
+
+    def keep(self):
+        fields.append(self)
+        return update(self)
+    scene = _dense_ball()
+    integrator = mi.load_dict({**GUIDED, "max_depth": 32})
+    try:
+        field_module.GuidingField.update = keep
+        mi.render(scene, integrator=integrator, spp=256, seed=1)
+    finally:
+        field_module.GuidingField.update = update
+    field = fields[-1]
+    light = np.array([1.6, 2.2, 1.2])
+    r = field.resolution
+    kappa = np.array(field.kappa)
+    mu = np.stack([np.array(m) for m in field.mu], axis=1)
+    cosines = []
+    for idx in np.nonzero(kappa > 0)[0]:
+        z, y, x = idx // (r * r), (idx // r) % r, idx % r
+        centre = (np.array([x, y, z]) + 0.5) / r * 2.0 - 1.0
+        if centre @ light > 0:
+            to_light = (light - centre) / np.linalg.norm(light - centre)
+            cosines.append(mu[idx] @ to_light)
+    assert len(cosines) >= 4 and np.mean(cosines) > 0.5, cosines
+    assert integrator.guiding_report.cells_guided == len(np.nonzero(kappa > 0)[0])
+
+
+def test_a_scene_without_media_renders_in_one_pass():
+    scene = load("cornell_box", res=16)
+    integrator = mi.load_dict(GUIDED)
+    mi.render(scene, integrator=integrator, spp=64)
+    assert integrator.guiding_report.passes == [64]
+
+
+@pytest.mark.parametrize("name, value, bound", [
+    ("guiding", "surfaces", "off | volumes"),
+    ("guiding_candidates", 0, "[1, 32]"),
+    ("guiding_training", 0.95, "<= 0.9"),
+    ("guiding_resolution", 64, "[1, 32]"),
+])
+def test_bad_guiding_parameters_are_refused(name, value, bound):
+    """The message names the parameter and its allowed range."""
+    with pytest.raises(Exception) as info:
+        mi.load_dict({**GUIDED, name: value})
+    message = str(info.value)
+    assert f"parameter '{name}'" in message and "allowed" in message and bound in message
+
+
+def test_memory_is_bounded_and_reported():
+    """The largest field allowed (32^3 cells) stays under the 64 MiB cap."""
+    field = GuidingField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=32)
+    assert field.memory() < 64 << 20
+    assert math.isclose(field.memory() / 2**20, float(field.describe().split(", ")[1].split()[0]),
+                        rel_tol=0.01)
