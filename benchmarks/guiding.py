@@ -16,7 +16,8 @@ test set reports them.
   chromatic ball under an environment.
 
 ``python3 -m benchmarks.guiding [--set tuning|test|both] [--configs a,b]`` writes
-``benchmarks/results/guiding.{md,json}``.
+``benchmarks/results/guiding.{md,json}``; ``--picture`` draws the field learnt in the
+dense ball, ``docs/results/guiding_field.png``.
 """
 from __future__ import annotations
 
@@ -126,6 +127,51 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def picture(path: Path, res: int = 64, spp: int = 512) -> None:
+    """The field learnt in the dense ball: for the cells of the slice through the ball's
+    centre (8^3 cells), the lobe's axis projected on the slice, its length the mean
+    cosine; the light's direction for comparison."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from mitsuba_plugins.guiding import field as field_module
+    fields = []
+    update = field_module.GuidingField.update
+
+    def keep(self):
+        fields.append(self)
+        return update(self)
+    scene = SCENES["dense_ball"][1](res)
+    try:
+        field_module.GuidingField.update = keep
+        mi.render(scene, integrator=mi.load_dict({**CONFIGS["guided"], "max_depth": 64,
+                                                  "guiding_resolution": 8}), spp=spp)
+    finally:
+        field_module.GuidingField.update = update
+    f = fields[-1]
+    r = f.resolution
+    W, V = f.sums[:, 0], f.sums[:, 1:]
+    drift = np.where((np.array(f.kappa) > 0)[:, None], V / np.maximum(W, 1e-30)[:, None], 0.0)
+    k = r // 2                                   # the slice of cells at z = 0
+    fig, ax = plt.subplots(figsize=(5, 5))
+    ax.add_patch(plt.Circle((0, 0), 1.0, fill=False, color="0.6"))
+    for y in range(r):
+        for x in range(r):
+            idx = (k * r + y) * r + x
+            cx, cy = (np.array([x, y]) + 0.5) / r * 2 - 1
+            if f.records[idx] and np.hypot(cx, cy) < 1.1:
+                ax.arrow(cx, cy, 0.6 * drift[idx, 0], 0.6 * drift[idx, 1], width=0.01,
+                         color="C0" if np.array(f.kappa)[idx] > 0 else "0.7")
+    light = np.array([1.6, 2.2])
+    ax.annotate("light", xy=light / np.linalg.norm(light) * 1.25, color="C1")
+    ax.set_xlim(-1.4, 1.4)
+    ax.set_ylim(-1.4, 1.4)
+    ax.set_aspect("equal")
+    ax.set_title("Learnt lobes, dense ball (slice z = 0): axis x mean cosine")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=int, default=128)
@@ -135,7 +181,12 @@ def main() -> None:
     ap.add_argument("--set", choices=("tuning", "test", "both"), default="both")
     ap.add_argument("--configs", default="off,guided")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "guiding"))
+    ap.add_argument("--picture", action="store_true",
+                    help="only draw the learnt field (docs/results/guiding_field.png)")
     args = ap.parse_args()
+    if args.picture:
+        picture(ROOT / "docs" / "results" / "guiding_field.png")
+        return
     configs = {k: CONFIGS[k] for k in args.configs.split(",")}
     result = {"date": datetime.date.today().isoformat(), "cpu": device_model(dense.VARIANT),
               "variant": dense.VARIANT, "scenes": {},
