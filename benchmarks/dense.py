@@ -284,8 +284,8 @@ def render_variant(scene, integ, variant, spp: int, seed: int):
     return timed_render(scene, integ, spp, seed)
 
 
-def equal_time(scene, variants: dict, spp: int, runs: int, ref) -> dict:
-    integ = {"builtin": mi.load_dict(BUILTIN), **{k: integrator(v) for k, v in variants.items()}}
+def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = BUILTIN) -> dict:
+    integ = {"builtin": mi.load_dict(builtin), **{k: integrator(v) for k, v in variants.items()}}
     variant = {"builtin": None, **variants}
     per_spp = {}
     for k, i in integ.items():     # compile, then time three renders (median: one render

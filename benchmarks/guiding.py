@@ -16,7 +16,9 @@ test set reports them.
   chromatic ball under an environment.
 
 ``python3 -m benchmarks.guiding [--set tuning|test|both] [--configs a,b]`` writes
-``benchmarks/results/guiding.{md,json}``; ``--picture`` draws the field learnt in the
+``benchmarks/results/guiding.{md,json}``; ``--surfaces --out
+benchmarks/results/guiding_surfaces``: ``path_rr`` with and without ``guiding =
+surfaces`` against ``path`` on a room lit through a slit and the Cornell box; ``--picture`` draws the field learnt in the
 dense ball, ``docs/results/guiding_field.png``.
 """
 from __future__ import annotations
@@ -40,6 +42,9 @@ CONFIGS = {
     "guided_c8": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 8},
     "guided_r8": {"type": "volpath_delta", "guiding": "volumes", "guiding_resolution": 8},
     "guided_t50": {"type": "volpath_delta", "guiding": "volumes", "guiding_training": 0.5},
+    # surfaces (path_rr), against Mitsuba's path
+    "path_rr": {"type": "path_rr", "max_depth": 12},
+    "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},
 }
 
 
@@ -85,6 +90,26 @@ def gap_room(res: int) -> mi.Scene:
     })
 
 
+def slit_room(res: int) -> mi.Scene:
+    """A closed white room lit only through a 0.1-high slit at the top of one wall, by an
+    area light outside above it (surfaces only: ``path_rr``'s guiding)."""
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}
+    h = 0.1
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": camera(res, origin=(-0.8, 0.0, 0.0), target=(1.0, 0.0, 0.0), fov=70.0),
+        "floor": _rect([0, -1, 0], "y", 1, (2, 2), white),
+        "ceiling": _rect([0, 1, 0], "y", -1, (2, 2), white),
+        "back": _rect([-1, 0, 0], "x", 1, (2, 2), white),
+        "left": _rect([0, 0, -1], "z", 1, (2, 2), white),
+        "right": _rect([0, 0, 1], "z", -1, (2, 2), white),
+        "wall": _rect([1, -h / 2, 0], "x", -1, (2, 2 - h), white),
+        "outside_floor": _rect([1.5, -1, 0], "y", 1, (1.0, 2.0), white),
+        "light": _rect([1.5, 1.3, 0], "y", -1, (1.0, 2.0),
+                       emitter={"type": "area", "radiance": {"type": "rgb", "value": 20.0}}),
+    })
+
+
 def _inside(res: int) -> mi.Scene:
     fog = homogeneous(0.6, albedo=0.9, g=0.6)
     return media_scene(extra={"fog": {"type": "sphere", "radius": 6.0, "bsdf": {"type": "null"},
@@ -104,16 +129,23 @@ SCENES = {
     "chromatic_dense": ("test", lambda res: media_scene(
         homogeneous([8.0, 16.0, 30.0], albedo=0.95, g=0.3), sensor=camera(res), env=0.5)),
 }
+#: surfaces (``--surfaces``): path_rr against Mitsuba's path
+SURFACE_SCENES = {
+    "slit_room": slit_room,
+    "cornell_box": lambda res: mi.load_file(str(ROOT / "scenes" / "cornell_box.xml"),
+                                            res=str(res)),
+}
 
 
 def markdown(result: dict) -> str:
     cfg = result["config"]
     lines = ["# Path guiding: does it pay inside one render, training included?", "",
              f"Measured {result['date']} on {result['cpu']} ({result['variant']}) by "
-             f"`python3 -m benchmarks.guiding {cfg['argv']}`: res {cfg['res']}, volpath at "
-             f"{cfg['spp']} spp, {cfg['runs']} alternating runs, reference {cfg['ref_spp']} "
-             "spp. Efficiency ratio: ours / volpath at equal time (90% bootstrap interval); "
-             "relMSE/sample: ours / volpath per sample (below 1: less variance).", "",
+             f"`python3 -m benchmarks.guiding {cfg['argv']}`: res {cfg['res']}, the built-in "
+             f"(volpath; path for surfaces) at {cfg['spp']} spp, {cfg['runs']} alternating runs, reference {cfg['ref_spp']} "
+             "spp. Efficiency ratio: ours / the built-in at equal time (90% bootstrap "
+             "interval); relMSE/sample: ours / the built-in per sample (below 1: less "
+             "variance).", "",
              "| scene | set | " + " | ".join(cfg["configs"]) + " |",
              "|---|---|" + "---|" * len(cfg["configs"])]
     for name, r in result["scenes"].items():
@@ -181,12 +213,16 @@ def main() -> None:
     ap.add_argument("--set", choices=("tuning", "test", "both"), default="both")
     ap.add_argument("--configs", default="off,guided")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "guiding"))
+    ap.add_argument("--surfaces", action="store_true",
+                    help="path_rr with and without guiding against path, on SURFACE_SCENES")
     ap.add_argument("--picture", action="store_true",
                     help="only draw the learnt field (docs/results/guiding_field.png)")
     args = ap.parse_args()
     if args.picture:
         picture(ROOT / "docs" / "results" / "guiding_field.png")
         return
+    if args.surfaces:
+        args.configs = "path_rr,path_rr_guided"
     configs = {k: CONFIGS[k] for k in args.configs.split(",")}
     result = {"date": datetime.date.today().isoformat(), "cpu": device_model(dense.VARIANT),
               "variant": dense.VARIANT, "scenes": {},
@@ -194,12 +230,19 @@ def main() -> None:
                          "ref_spp": args.ref_spp, "configs": list(configs),
                          "argv": " ".join(sys.argv[1:])}}
     out = Path(args.out)
-    for name, (which, make) in SCENES.items():
-        if args.set not in ("both", which):
+    scenes = {k: ("surfaces", v) for k, v in SURFACE_SCENES.items()} if args.surfaces \
+        else SCENES
+    for name, (which, make) in scenes.items():
+        if not args.surfaces and args.set not in ("both", which):
             continue
         scene = make(args.res)
-        ref = dense.reference(scene, args.ref_spp)
-        eff = dense.equal_time(scene, configs, args.spp, args.runs, ref)
+        if args.surfaces:
+            builtin = {"type": "path", "max_depth": 12}
+            ref = dense.reference(scene, args.ref_spp, builtin)
+            eff = dense.equal_time(scene, configs, args.spp, args.runs, ref, builtin)
+        else:
+            ref = dense.reference(scene, args.ref_spp)
+            eff = dense.equal_time(scene, configs, args.spp, args.runs, ref)
         for k in configs:
             eff[k]["rel_mse_per_sample_ratio"] = (eff[k]["rel_mse"] * eff[k]["spp"]) / \
                 (eff["builtin"]["rel_mse"] * eff["builtin"]["spp"])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
+from mitsuba_plugins import guided_render
 from mitsuba_plugins.path_loop import PathIntegrator
 from mitsuba_plugins.path_vertex import EMITTER_SELECTIONS, RR_RULES, RussianRoulette
 from mitsuba_plugins.validity import refuse_gradients
@@ -44,6 +45,24 @@ class PathRR(PathIntegrator):
      * - emitter_selection
        - |string|
        - ``uniform`` (Mitsuba's) or ``power`` (proportional to emitted flux). (Default: ``uniform``)
+     * - guiding
+       - |string|
+       - Path guiding at surfaces (docs/method.md section 13): ``off``, or ``surfaces``:
+         at surfaces without delta or transmissive lobes, directions from a one-sample MIS
+         mixture of the BSDF and a field learnt during the render (a grid of cells, one
+         von Mises-Fisher lobe each), within one ``mi.render`` call. (Default: ``off``)
+     * - guiding_fraction
+       - |float|
+       - Probability of sampling the learnt lobe where a cell has one, in [0, 0.9].
+         (Default: 0.5)
+     * - guiding_training
+       - |float|
+       - Largest share of the samples spent in training passes, in [0, 0.9].
+         (Default: 0.25)
+     * - guiding_resolution
+       - |int|
+       - Cells per axis of the guiding field over the scene's bounds, in [1, 32].
+         (Default: 8)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)
@@ -66,7 +85,8 @@ class PathRR(PathIntegrator):
     render_forward, render_backward = refuse_gradients("path_rr", "prb")
 
     NAME = "path_rr"
-    PARAMETERS = ("rr_rule", "rr_survival", "rr_min_survival", "emitter_selection")
+    PARAMETERS = ("rr_rule", "rr_survival", "rr_min_survival", "emitter_selection",
+                  "guiding", "guiding_fraction", "guiding_training", "guiding_resolution")
 
     def configure(self, p):
         self.rr = RussianRoulette(
@@ -76,6 +96,11 @@ class PathRR(PathIntegrator):
             min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=self.rr.max_survival),
             max_survival=self.rr.max_survival)
         self.emitter_selection = p.choice("emitter_selection", "uniform", EMITTER_SELECTIONS)
+        self.guiding = p.choice("guiding", "off", ("off", "surfaces"))
+        self.guiding_fraction = p.float("guiding_fraction", 0.5, lo=0.0, hi=0.9)
+        self.guiding_training = p.float("guiding_training", guided_render.TRAINING, lo=0.0,
+                                        hi=0.9)
+        self.guiding_resolution = p.int("guiding_resolution", 8, lo=1, hi=32)
 
     def to_string(self):
         return (f"PathRR[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
@@ -83,4 +108,20 @@ class PathRR(PathIntegrator):
                 f"  hide_emitters = {self.hide_emitters}\n]")
 
 
-mi.register_integrator("path_rr", lambda props: PathRR(props))
+class GuidedPathRR(PathRR):
+    """``path_rr`` with ``guiding = surfaces``: its render is the passes of
+    :func:`mitsuba_plugins.guided_render.render` (a class of its own, so that the
+    unguided plugin keeps Mitsuba's C++ render)."""
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not develop:
+            raise ValueError("path_rr: guiding renders develop the film (develop=True)")
+        return guided_render.render(self, scene, sensor, seed, spp)
+
+
+def _make(props: mi.Properties):
+    guided = "guiding" in props and props["guiding"] != "off"
+    return (GuidedPathRR if guided else PathRR)(props)
+
+
+mi.register_integrator("path_rr", _make)

@@ -232,7 +232,7 @@ class GuidedVolpathDelta(VolpathDelta):
 
 
 def _make(props: mi.Properties):
-    guided = props.has_property("guiding") and props["guiding"] != "off"
+    guided = "guiding" in props and props["guiding"] != "off"
     return (GuidedVolpathDelta if guided else VolpathDelta)(props)
 
 

@@ -1,11 +1,11 @@
-"""One guided render of ``volpath_delta`` (``guiding`` not ``off``): passes that learn where
-light comes from and then guide, all inside one ``mi.render`` call (docs/method.md
-section 13).
+"""One guided render of ``volpath_delta`` (``guiding = volumes``) or ``path_rr`` (``guiding
+= surfaces``): passes that learn where light comes from and then guide, all inside one
+``mi.render`` call (docs/method.md section 13).
 
 The schedule: training passes of doubling sample counts (from ``spp / 128``, at least 1)
 while their sum stays within ``guiding_training`` of ``spp``, then one pass with the rest.
-The first pass samples the phase function alone; every pass records its medium vertices
-into the field except the last; the field is fixed within a pass (folded in between), so
+The first pass samples the phase function (or BSDF) alone; every pass records its medium
+(or surface) vertices into the field except the last; the field is fixed within a pass (folded in between), so
 each pass is an unbiased estimate. The passes are combined in proportion to their sample
 counts: fixed weights, so the combination is unbiased too (weights from the passes'
 measured variances would favour the guided passes but depend on the data).
@@ -20,7 +20,8 @@ import time
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.guiding.field import GuidingField, media_bounds
+from mitsuba_plugins.guiding.field import GuidingField, media_bounds, scene_bounds
+from mitsuba_plugins.path_loop import trace_surfaces
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.volume_loop import trace_volumes
 
@@ -37,9 +38,10 @@ class GuidedPass:
     """What one pass hands the path loop: the ``field`` (None before it has learnt
     anything), whether it samples from it and whether it records into it."""
 
-    def __init__(self, field, sampling: bool, recording: bool, candidates: int):
+    def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
+                 fraction: float = 0.0):
         self.field, self.sampling, self.recording = field, sampling, recording
-        self.candidates = candidates
+        self.candidates, self.fraction = candidates, fraction
 
 
 class _PassRender:
@@ -60,8 +62,13 @@ class _PassRender:
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         active = mi.Bool(active)
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
-                                     medium, SceneMedia(scene), active, guide=self.guide)
+            if integrator.guiding == "surfaces":
+                L, valid = trace_surfaces(integrator, scene, sampler, ray, active,
+                                          guide=self.guide)
+            else:
+                L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler,
+                                         ray, medium, SceneMedia(scene), active,
+                                         guide=self.guide)
         return integrator.sample_guard(L, active), valid, [], None
 
 
@@ -90,11 +97,13 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         spp = sensor.sampler().sample_count()
     report = integrator.guiding_report = GuidingReport()
     plan = schedule(spp, integrator.guiding_training)
-    if not SceneMedia(scene).any or len(plan) == 1:
+    surfaces = integrator.guiding == "surfaces"
+    if (not surfaces and not SceneMedia(scene).any) or len(plan) == 1:
         # nothing to guide (no medium), or too few samples to learn from: one plain pass
         report.passes = [spp]
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
-    field = GuidingField(media_bounds(scene), integrator.guiding_resolution)
+    field = GuidingField(scene_bounds(scene) if surfaces else media_bounds(scene),
+                         integrator.guiding_resolution)
     report.memory = field.memory()
     image, t0 = None, time.perf_counter()
     for k, n in enumerate(plan):
@@ -102,7 +111,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         if last:
             report.training_seconds = time.perf_counter() - t0
         guide = GuidedPass(field, sampling=k > 0, recording=not last,
-                           candidates=integrator.guiding_candidates)
+                           candidates=getattr(integrator, "guiding_candidates", 1),
+                           fraction=getattr(integrator, "guiding_fraction", 0.0))
         pass_seed = seed if k == 0 else \
             int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)

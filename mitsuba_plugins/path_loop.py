@@ -10,6 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.guiding.sampling import Records, mix_surface
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
 from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
@@ -71,10 +72,15 @@ class PathIntegrator(mi.SamplingIntegrator):
 
 @dr.syntax
 def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-                   active: mi.Bool):
+                   active: mi.Bool, guide=None):
     """The surface path loop of ``path_rr`` (and of the volumetric integrators in a
     scene without media): ``(L, valid_ray)``. ``integrator`` supplies the settings
-    (``max_depth``, ``rr``, ``mis``, ``emitter_selection``, ``hide_emitters``)."""
+    (``max_depth``, ``rr``, ``mis``, ``emitter_selection``, ``hide_emitters``).
+
+    ``guide`` (:class:`~mitsuba_plugins.guided_render.GuidedPass`): at surfaces without
+    delta or transmissive lobes, directions from the one-sample MIS mixture of the
+    guiding field and the BSDF, and/or records that train the field
+    (:func:`mitsuba_plugins.guiding.sampling.mix_surface`)."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     max_depth = depth_limit(integrator.max_depth)
@@ -91,6 +97,9 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     prev_pdf = mi.Float(1.0)                         # p_b of the direction that led here
     prev_delta = mi.Bool(True)                       # ... drawn from a delta lobe (camera: yes)
     active = mi.Bool(active)                         # lanes still tracing
+    guided = guide is not None and guide.sampling    # directions from the field
+    recording = guide is not None and guide.recording
+    records = Records() if recording else None       # the field's training records
     pi = scene.ray_intersect_preliminary(ray, coherent=True, reorder=False, active=active)
 
     if dr.hint(integrator.hide_emitters, mode="scalar"):
@@ -117,8 +126,21 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         u1 = sampler.next_1d()
         u2 = sampler.next_2d()
         bsdf_val, p_b, bs, bsdf_weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, u1, u2)
+        if dr.hint(guided or recording, mode="scalar"):
+            flags = bsdf.flags()
+            guidable = active_next & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+                ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
+        if dr.hint(guided, mode="scalar"):
+            p_b, bs, bsdf_weight, f_wo = mix_surface(
+                guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
+                sampler.next_1d(), u2, guidable)
+        elif dr.hint(recording, mode="scalar"):
+            f_wo = mi.Float(dr.mean(mi.Spectrum(bsdf_weight))) * bs.pdf
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight, wo,
                                                          bsdf_val, p_b), L)
+        if dr.hint(recording, mode="scalar"):
+            records = records.add(guide.field, si.p, si.to_world(bs.wo), L, beta, f_wo,
+                                  sampler.next_1d(), guidable)
 
         # ------------------------- throughput update -------------------------
         bsdf_weight = si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)
@@ -140,4 +162,6 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
                                              reorder=dr.flag(dr.JitFlag.LoopRecord),
                                              active=active)
 
+    if dr.hint(recording, mode="scalar"):
+        records.flush(guide.field, L, mi.Bool(True))
     return dr.select(valid_ray, L, 0.0), valid_ray

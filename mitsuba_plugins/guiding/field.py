@@ -164,5 +164,21 @@ def media_bounds(scene: mi.Scene):
             box.expand(shape.bbox())
     sensors = scene.sensors()
     if not box.valid() or any(s.get_medium() is not None for s in sensors):
-        return scene.bbox()
+        return scene_bounds(scene)
     return box
+
+
+def scene_bounds(scene: mi.Scene):
+    """The union of the scene's shapes' bounds. ``Scene.bbox()`` can miss shapes: Mitsuba
+    merges meshes that share a BSDF into one whose ``bbox()`` is empty from Python
+    (measured: a room of rectangles reported the light's bounds alone), so a merged mesh
+    is bounded by its vertices."""
+    box = mi.ScalarBoundingBox3f()
+    for shape in scene.shapes():
+        b = shape.bbox()
+        if b.valid():
+            box.expand(b)
+        elif shape.is_mesh() and shape.vertex_count() > 0:
+            v = np.array(shape.vertex_positions_buffer()).reshape(-1, 3)
+            box.expand(mi.ScalarBoundingBox3f(v.min(axis=0).tolist(), v.max(axis=0).tolist()))
+    return box if box.valid() else scene.bbox()

@@ -126,3 +126,35 @@ class Records:
             field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"),
                          scale * self._value(L, getattr(self, f"L{k}"), getattr(self, f"w{k}")),
                          active & getattr(self, f"valid{k}"))
+
+
+def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs, weight,
+                u_select, u_dir, active):
+    """The guided choice at a surface whose BSDF has no delta or transmissive lobe: with
+    probability ``fraction`` (where the cell has a lobe) a direction from the field, else
+    the BSDF's own sample ``bs``; one-sample MIS, pdf ``(1 - a) p_bsdf + a g``. Surface
+    paths are short, so the mixture's weights (at most ``1 / (1 - a)`` times the BSDF's)
+    do not compound as they do over a walk in a medium. Returns ``(pdf of d_light, the
+    sample, its weight, f(y))``: the mixture pdf of the emitter sample's direction is the
+    BSDF side of next-event estimation's MIS, and the sample's ``pdf`` that of emission
+    found by the new ray."""
+    cell = field.cell(si.p)
+    _, kappa = field.lobe(cell, active)
+    alpha = dr.select(active & (kappa > 0), fraction, 0.0)
+    guided = alpha > 0
+    use = guided & (u_select < alpha)
+    wo = dr.select(use, si.to_local(field.sample(cell, u_dir, use)), bs.wo)
+    f, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
+    pdf = dr.lerp(p_bsdf, field.pdf(cell, si.to_world(wo), guided), alpha)
+    sample = mi.BSDFSample3f(bs)
+    sample.wo = wo
+    sample.pdf = dr.select(guided, pdf, bs.pdf)
+    sample.eta = dr.select(use, 1.0, bs.eta)
+    sample.sampled_type = dr.select(use, mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
+                                    bs.sampled_type)
+    mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
+    f_wo = dr.select(guided, mi.Float(dr.mean(mi.Spectrum(f))),
+                     mi.Float(dr.mean(mi.Spectrum(weight))) * bs.pdf)
+    p_light = dr.select(guided, dr.lerp(p_light, field.pdf(cell, d_light, guided), alpha),
+                        p_light)
+    return p_light, sample, mi.Spectrum(mixed_weight), f_wo

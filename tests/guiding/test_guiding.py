@@ -1,4 +1,5 @@
-"""Path guiding (``volpath_delta``'s ``guiding``, docs/method.md section 13): the field's
+"""Path guiding (``volpath_delta``'s and ``path_rr``'s ``guiding``, docs/method.md section
+13): the field's
 pdf is the density of its own samples (chi-square over equal-area bins), guided renders
 estimate the same image as unguided ones (docs/validation.md's Welch z-tests, disjoint
 seeds) and the furnace's analytic 1 (t-test), in every variant the suite runs; training
@@ -14,7 +15,7 @@ import pytest
 from scipy import stats as scipy_stats
 
 from helpers import (assert_mean_equals, assert_same_expectation, cached_estimate, camera, grid,
-                     homogeneous, load, media_scene, render)
+                     homogeneous, load, loaded, media_scene, render)
 from mitsuba_plugins.guiding.field import GuidingField
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
@@ -98,6 +99,16 @@ def test_guided_renders_estimate_the_same_image(case):
     assert_same_expectation(a, b, f"guiding-{case}")
 
 
+def test_guided_surfaces_estimate_the_same_image():
+    """``path_rr`` with ``guiding = surfaces`` against ``path_rr`` on the Cornell box
+    (8 passes of 64 spp against 16 of 64, disjoint seeds, max_depth 8)."""
+    key, make = loaded("cornell_box")
+    a = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8, "guiding": "surfaces"},
+                        passes=8, spp=64, seed=2000)
+    b = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8}, passes=16, spp=64)
+    assert_same_expectation(a, b, "guiding-surfaces-cornell_box")
+
+
 def test_guided_open_furnace():
     """scenes/furnace_env.xml's analytic answer (its header: image mean 0.8), as
     tests/integrators/test_furnace.py checks every integrator."""
@@ -156,6 +167,17 @@ def test_bad_guiding_parameters_are_refused(name, value, bound):
     """The message names the parameter and its allowed range."""
     with pytest.raises(Exception) as info:
         mi.load_dict({**GUIDED, name: value})
+    message = str(info.value)
+    assert f"parameter '{name}'" in message and "allowed" in message and bound in message
+
+
+@pytest.mark.parametrize("name, value, bound", [
+    ("guiding", "volumes", "off | surfaces"),
+    ("guiding_fraction", 0.95, "<= 0.9"),
+])
+def test_bad_surface_guiding_parameters_are_refused(name, value, bound):
+    with pytest.raises(Exception) as info:
+        mi.load_dict({"type": "path_rr", "guiding": "surfaces", name: value})
     message = str(info.value)
     assert f"parameter '{name}'" in message and "allowed" in message and bound in message
 
