@@ -104,7 +104,7 @@ class Records:
         slot ``floor(u n)`` where that is below :data:`SLOTS` (reservoir sampling: every
         vertex of the path ends up in it with probability ``SLOTS / n``)."""
         cell = field.cell(p)
-        w = dr.select(beta * f_wo > 0, dr.rcp(beta * f_wo), 0.0)
+        w = mi.Spectrum(dr.select(beta * f_wo > 0, dr.rcp(beta * f_wo), 0.0))
         self.next[active] += 1
         slot = dr.select(self.next <= SLOTS, self.next - 1,
                          mi.UInt32(dr.floor(u * mi.Float(self.next))))
