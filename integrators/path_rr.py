@@ -96,11 +96,8 @@ class PathRR(PathIntegrator):
             min_survival=p.float("rr_min_survival", 0.0, lo=0.0, hi=self.rr.max_survival),
             max_survival=self.rr.max_survival)
         self.emitter_selection = p.choice("emitter_selection", "uniform", EMITTER_SELECTIONS)
-        self.guiding = p.choice("guiding", "off", ("off", "surfaces"))
+        guided_render.configure(self, p, ("surfaces",), resolution=8)
         self.guiding_fraction = p.float("guiding_fraction", 0.5, lo=0.0, hi=0.9)
-        self.guiding_training = p.float("guiding_training", guided_render.TRAINING, lo=0.0,
-                                        hi=0.9)
-        self.guiding_resolution = p.int("guiding_resolution", 8, lo=1, hi=32)
 
     def to_string(self):
         return (f"PathRR[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"
@@ -108,20 +105,4 @@ class PathRR(PathIntegrator):
                 f"  hide_emitters = {self.hide_emitters}\n]")
 
 
-class GuidedPathRR(PathRR):
-    """``path_rr`` with ``guiding = surfaces``: its render is the passes of
-    :func:`mitsuba_plugins.guided_render.render` (a class of its own, so that the
-    unguided plugin keeps Mitsuba's C++ render)."""
-
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if not develop:
-            raise ValueError("path_rr: guiding renders develop the film (develop=True)")
-        return guided_render.render(self, scene, sensor, seed, spp)
-
-
-def _make(props: mi.Properties):
-    guided = "guiding" in props and props["guiding"] != "off"
-    return (GuidedPathRR if guided else PathRR)(props)
-
-
-mi.register_integrator("path_rr", _make)
+mi.register_integrator("path_rr", guided_render.factory(PathRR))

@@ -25,8 +25,6 @@ DEFAULT_SHADOW_ROULETTE = 0.2
 MAX_SHADOW_ROULETTE = 0.999
 #: Chosen on benchmarks/results/inverse.md (efficiency of directional derivatives).
 DEFAULT_GRADIENT_ESTIMATOR = "drt"
-#: values of ``guiding``
-GUIDING = ("off", "volumes")
 
 
 class VolpathDelta(VolumetricIntegrator):
@@ -157,12 +155,8 @@ class VolpathDelta(VolumetricIntegrator):
         self.equiangular = p.bool("equiangular", False)
         self.gradient_estimator = p.choice("gradient_estimator", DEFAULT_GRADIENT_ESTIMATOR,
                                            GRADIENT_ESTIMATORS)
-        self.guiding = p.choice("guiding", "off", GUIDING)
+        guided_render.configure(self, p, ("volumes",), guided_render.RESOLUTION)
         self.guiding_candidates = p.int("guiding_candidates", guided_render.CANDIDATES, lo=1,
-                                        hi=32)
-        self.guiding_training = p.float("guiding_training", guided_render.TRAINING, lo=0.0,
-                                        hi=0.9)
-        self.guiding_resolution = p.int("guiding_resolution", guided_render.RESOLUTION, lo=1,
                                         hi=32)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
                                          TRANSMITTANCE_ESTIMATORS[self.transmittance])
@@ -219,21 +213,4 @@ class TrackingStrategy(VolumeStrategy):
         return walk(tracker, ray, t_max, ctx.sampler, rule, active)
 
 
-class GuidedVolpathDelta(VolpathDelta):
-    """``volpath_delta`` with ``guiding`` on: its render is the passes of
-    :func:`mitsuba_plugins.guided_render.render` (a class of its own, so that the
-    unguided plugin keeps Mitsuba's C++ render)."""
-
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if not develop:
-            raise ValueError("volpath_delta: guiding renders develop the film "
-                             "(develop=True)")
-        return guided_render.render(self, scene, sensor, seed, spp)
-
-
-def _make(props: mi.Properties):
-    guided = "guiding" in props and props["guiding"] != "off"
-    return (GuidedVolpathDelta if guided else VolpathDelta)(props)
-
-
-mi.register_integrator("volpath_delta", _make)
+mi.register_integrator("volpath_delta", guided_render.factory(VolpathDelta))

@@ -122,3 +122,29 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
             report.cells_guided = field.update()
         report.passes.append(n)
     return image
+
+
+def configure(integrator, p, modes: tuple, resolution: int) -> None:
+    """Read the guiding parameters of a plugin (``guiding`` among ``off`` and ``modes``,
+    ``guiding_training``, ``guiding_resolution``, default ``resolution``) into it."""
+    integrator.guiding = p.choice("guiding", "off", ("off", *modes))
+    integrator.guiding_training = p.float("guiding_training", TRAINING, lo=0.0, hi=0.9)
+    integrator.guiding_resolution = p.int("guiding_resolution", resolution, lo=1, hi=32)
+
+
+def factory(plugin):
+    """The constructor to register for the plugin class ``plugin``: with ``guiding`` on, a
+    subclass whose render is :func:`render` (a class of its own, so that the unguided
+    plugin keeps Mitsuba's C++ render)."""
+    class Guided(plugin):
+        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+            if not develop:
+                raise ValueError(f"{self.NAME}: guiding renders develop the film "
+                                 "(develop=True)")
+            return render(self, scene, sensor, seed, spp)
+    Guided.__name__ = Guided.__qualname__ = f"Guided{plugin.__name__}"
+
+    def make(props: mi.Properties):
+        guided = "guiding" in props and props["guiding"] != "off"
+        return (Guided if guided else plugin)(props)
+    return make
