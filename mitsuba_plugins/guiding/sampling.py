@@ -143,9 +143,20 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     alpha = dr.select(active & (kappa > 0), fraction, 0.0)
     guided = alpha > 0
     use = guided & (u_select < alpha)
-    wo = dr.select(use, si.to_local(field.sample(cell, u_dir, use)), bs.wo)
+    side = dr.select(si.wi.z < 0, -1.0, 1.0)
+
+    def folded(local):
+        """The lobe folded onto the side of ``wi`` (a direction below the surface is
+        mirrored above it): density g(w) + g(mirror(w)) there, 0 on the other side."""
+        mirrored = mi.Vector3f(local.x, local.y, -local.z)
+        g = field.pdf(cell, si.to_world(local), guided) + \
+            field.pdf(cell, si.to_world(mirrored), guided)
+        return dr.select(local.z * side > 0, g, 0.0)
+    drawn = si.to_local(field.sample(cell, u_dir, use))
+    drawn.z = dr.select(drawn.z * side < 0, -drawn.z, drawn.z)
+    wo = dr.select(use, drawn, bs.wo)
     f, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-    pdf = dr.lerp(p_bsdf, field.pdf(cell, si.to_world(wo), guided), alpha)
+    pdf = dr.lerp(p_bsdf, folded(wo), alpha)
     sample = mi.BSDFSample3f(bs)
     sample.wo = wo
     sample.pdf = dr.select(guided, pdf, bs.pdf)
@@ -155,6 +166,6 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     f_wo = dr.select(guided, mi.Float(dr.mean(mi.Spectrum(f))),
                      mi.Float(dr.mean(mi.Spectrum(weight))) * bs.pdf)
-    p_light = dr.select(guided, dr.lerp(p_light, field.pdf(cell, d_light, guided), alpha),
+    p_light = dr.select(guided, dr.lerp(p_light, folded(si.to_local(d_light)), alpha),
                         p_light)
     return p_light, sample, mi.Spectrum(mixed_weight), f_wo
