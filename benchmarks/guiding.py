@@ -167,21 +167,10 @@ def picture(path: Path, res: int = 64, spp: int = 512) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
-    from mitsuba_plugins.guiding import field as field_module
-    fields = []
-    update = field_module.GuidingField.update
-
-    def keep(self):
-        fields.append(self)
-        return update(self)
     scene = SCENES["dense_ball"][1](res)
-    try:
-        field_module.GuidingField.update = keep
-        mi.render(scene, integrator=mi.load_dict({**CONFIGS["guided"], "max_depth": 64,
-                                                  "guiding_resolution": 8}), spp=spp)
-    finally:
-        field_module.GuidingField.update = update
-    f = fields[-1]
+    integrator = mi.load_dict({**CONFIGS["guided"], "max_depth": 64, "guiding_resolution": 8})
+    mi.render(scene, integrator=integrator, spp=spp)
+    f = integrator.guiding_report.field
     r = f.resolution
     W, V = f.sums[:, 0], f.sums[:, 1:]
     drift = np.where((np.array(f.kappa) > 0)[:, None], V / np.maximum(W, 1e-30)[:, None], 0.0)

@@ -21,9 +21,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding.field import GuidingField, media_bounds, scene_bounds
-from mitsuba_plugins.path_loop import trace_surfaces
 from mitsuba_plugins.tracking.scene_media import SceneMedia
-from mitsuba_plugins.volume_loop import trace_volumes
 
 _common = mi.ad.integrators.common
 VARIANT = mi.variant()
@@ -57,19 +55,10 @@ class _PassRender:
         return []
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
-        integrator = self.integrator
-        medium = self.sensor.get_medium()
-        medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
-        active = mi.Bool(active)
-        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            if integrator.guiding == "surfaces":
-                L, valid = trace_surfaces(integrator, scene, sampler, ray, active,
-                                          guide=self.guide)
-            else:
-                L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler,
-                                         ray, medium, SceneMedia(scene), active,
-                                         guide=self.guide)
-        return integrator.sample_guard(L, active), valid, [], None
+        # the plugin's own sample (its loop: surfaces or volumes), with this pass's guide
+        L, valid, _ = self.integrator.sample(scene, sampler, ray, self.sensor.get_medium(),
+                                             mi.Bool(active), guide=self.guide)
+        return L, valid, [], None
 
 
 def schedule(spp: int, training: float) -> list:
@@ -87,6 +76,7 @@ class GuidingReport:
 
     def __init__(self):
         self.passes, self.training_seconds, self.cells_guided, self.memory = [], 0.0, 0, 0
+        self.field = None      # the field learnt (None without training passes)
 
 
 def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.TensorXf:
@@ -104,7 +94,7 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
     field = GuidingField(scene_bounds(scene) if surfaces else media_bounds(scene),
                          integrator.guiding_resolution)
-    report.memory = field.memory()
+    report.memory, report.field = field.memory(), field
     image, t0 = None, time.perf_counter()
     for k, n in enumerate(plan):
         last = k == len(plan) - 1

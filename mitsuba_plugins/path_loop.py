@@ -54,7 +54,9 @@ class PathIntegrator(mi.SamplingIntegrator):
         """Read the plugin's own parameters (``self.PARAMETERS``) from ``p``."""
 
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
-               medium: mi.Medium = None, active: mi.Bool = True):
+               medium: mi.Medium = None, active: mi.Bool = True, guide=None):
+        """Mitsuba's ``SamplingIntegrator.sample``; ``guide``: a pass of a guided render
+        (:class:`~mitsuba_plugins.guided_render.GuidedPass`), handed to the loop."""
         if self.max_depth == 0:
             return mi.Spectrum(0.0), mi.Bool(False), []
         # Dr.Jit's OptimizeLoops records each symbolic loop a second time to drop its
@@ -62,12 +64,12 @@ class PathIntegrator(mi.SamplingIntegrator):
         # 2^depth times for kernels that LLVM optimises to the same speed (issue 29:
         # 1.4-2.5 ms less Python tracing per render, kernel time unchanged)
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            L, valid_ray = self.trace(scene, sampler, ray, medium, active)
+            L, valid_ray = self.trace(scene, sampler, ray, medium, active, guide)
         return self.sample_guard(L, active), valid_ray, []
 
-    def trace(self, scene, sampler, ray, medium, active):
+    def trace(self, scene, sampler, ray, medium, active, guide=None):
         """``(L, valid_ray)`` of one sample."""
-        return trace_surfaces(self, scene, sampler, ray, active)
+        return trace_surfaces(self, scene, sampler, ray, active, guide)
 
 
 @dr.syntax

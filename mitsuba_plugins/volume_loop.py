@@ -148,12 +148,13 @@ class VolumetricIntegrator(PathIntegrator):
     #: :meth:`mitsuba_plugins.tracking.shadow_rays.TransmittancePass.roulette`).
     shadow_roulette = 0.0
 
-    def trace(self, scene, sampler, ray, medium, active):
+    def trace(self, scene, sampler, ray, medium, active, guide=None):
         media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
         if not media.any:
-            return super().trace(scene, sampler, ray, medium, active)
+            return super().trace(scene, sampler, ray, medium, active)   # nothing to guide
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
-        return trace_volumes(self, self.strategy, scene, sampler, ray, medium, media, active)
+        return trace_volumes(self, self.strategy, scene, sampler, ray, medium, media, active,
+                             guide=guide)
 
 
 @dr.syntax

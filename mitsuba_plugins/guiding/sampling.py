@@ -82,7 +82,7 @@ class Records:
     """The ring of the last :data:`SLOTS` medium vertices of each path."""
     DRJIT_STRUCT = _fields()
 
-    def __init__(self, size=None):
+    def __init__(self):
         self.next = mi.UInt32(0)
         for k in range(SLOTS):
             setattr(self, f"cell{k}", mi.UInt32(0))
