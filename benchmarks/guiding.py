@@ -19,7 +19,9 @@ test set reports them.
 ``benchmarks/results/guiding.{md,json}``; ``--surfaces --out
 benchmarks/results/guiding_surfaces``: ``path_rr`` with and without ``guiding =
 surfaces`` against ``path`` on a room lit through a slit and the Cornell box; ``--picture`` draws the field learnt in the
-dense ball, ``docs/results/guiding_field.png``.
+dense ball, ``docs/results/guiding_field.png``; ``--ceiling --out
+benchmarks/results/guiding_ceiling``: what directional guiding could give with a field
+learnt long beforehand (a 2048-spp training render, then frozen), at equal sample count.
 """
 from __future__ import annotations
 
@@ -193,6 +195,62 @@ def picture(path: Path, res: int = 64, spp: int = 512) -> None:
     fig.savefig(path, dpi=110, bbox_inches="tight")
 
 
+def ceiling(args) -> dict:
+    """Relative MSE per sample of guided passes whose field was learnt beforehand (a
+    ``--train``-spp render, its field then frozen) over that of unguided renders, at
+    ``--spp`` samples, ``--runs`` seeds each (mean and standard error): the most that
+    directional guiding with this field can give, training time not counted."""
+    import numpy as np
+    from mitsuba_plugins import guided_render
+    rows = {}
+    for name, (which, make) in SCENES.items():
+        scene = make(args.res)
+        ref = dense.reference(scene, args.ref_spp)
+        sensor = scene.sensors()[0]
+
+        def rel(img):
+            img = np.array(img)[..., :3]
+            return float(np.mean((img - ref[..., :3]) ** 2 / (ref[..., :3] ** 2 + 1e-2)))
+        off = mi.load_dict({"type": "volpath_delta"})
+        base = [rel(mi.render(scene, integrator=off, spp=args.spp, seed=100 + s))
+                for s in range(args.runs)]
+        row = {"set": which, "off": [float(np.mean(base)), float(np.std(base) / np.sqrt(args.runs))]}
+        for resolution in (4, 8):
+            integrator = mi.load_dict({"type": "volpath_delta", "guiding": "volumes",
+                                       "guiding_resolution": resolution, "guiding_training": 0.9})
+            mi.render(scene, integrator=integrator, spp=args.train, seed=1)
+            field = integrator.guiding_report.field
+            for candidates in (4, 16):
+                guide = guided_render.GuidedPass(field, True, False, candidates)
+                errs = [rel(guided_render._PassRender(integrator, sensor, guide).render(
+                    scene, sensor, 100 + s, args.spp)) for s in range(args.runs)]
+                ratio = np.array(errs) / np.mean(base)
+                row[f"r{resolution}_c{candidates}"] = [float(ratio.mean()),
+                                                       float(ratio.std() / np.sqrt(args.runs))]
+        rows[name] = row
+        print(name, row, flush=True)
+    return rows
+
+
+def ceiling_markdown(result: dict) -> str:
+    cfg = result["config"]
+    keys = ["r4_c4", "r4_c16", "r8_c4", "r8_c16"]
+    lines = ["# Path guiding in media: the most a frozen, well-trained field gives", "",
+             f"Measured {result['date']} on {result['cpu']} ({result['variant']}) by "
+             f"`python3 -m benchmarks.guiding {cfg['argv']}`: res {cfg['res']}, field learnt "
+             f"by a {cfg['train']}-spp guided render, then frozen; {cfg['spp']} spp x "
+             f"{cfg['runs']} seeds; reference {cfg['ref_spp']} spp. Entries: relMSE of the "
+             "guided pass / relMSE of unguided volpath_delta at the same spp (below 1: "
+             "guiding lowers the variance per sample), +- standard error; rN_cM: N^3 cells, "
+             "M candidates. Training time not counted.", "",
+             "| scene | set | off relMSE | " + " | ".join(keys) + " |",
+             "|---|---|---|" + "---|" * len(keys)]
+    for name, r in result["scenes"].items():
+        lines.append(f"| {name} | {r['set']} | {r['off'][0]:.4g} | " + " | ".join(
+            f"{r[k][0]:.2f} +- {r[k][1]:.2f}" for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--res", type=int, default=128)
@@ -206,7 +264,22 @@ def main() -> None:
                     help="path_rr with and without guiding against path, on SURFACE_SCENES")
     ap.add_argument("--picture", action="store_true",
                     help="only draw the learnt field (docs/results/guiding_field.png)")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="frozen, well-trained fields against unguided renders at equal spp")
+    ap.add_argument("--train", type=int, default=2048, help="--ceiling: training spp")
     args = ap.parse_args()
+    if args.ceiling:
+        result = {"date": datetime.date.today().isoformat(),
+                  "cpu": device_model(dense.VARIANT), "variant": dense.VARIANT,
+                  "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
+                             "ref_spp": args.ref_spp, "train": args.train,
+                             "argv": " ".join(sys.argv[1:])}}
+        result["scenes"] = ceiling(args)
+        out = Path(args.out)
+        output.write_json(out.with_suffix(".json"), result, indent=1)
+        output.write_text(out.with_suffix(".md"), ceiling_markdown(result))
+        print(ceiling_markdown(result))
+        return
     if args.picture:
         picture(ROOT / "docs" / "results" / "guiding_field.png")
         return
