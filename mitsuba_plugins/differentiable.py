@@ -8,6 +8,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.path_loop import traced_once
 from mitsuba_plugins.tracking.replay import Replay
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.volume_loop import trace_volumes
@@ -38,8 +39,9 @@ class ReplayRender:
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         active = mi.Bool(active)
         if mode == dr.ADMode.Primal:
-            L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
-                                     medium, media, active)
+            with traced_once():
+                L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler,
+                                         ray, medium, media, active)
             L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
             return L, valid, [], (L, valid)
         L_primal, valid_primal = state_in
@@ -48,8 +50,9 @@ class ReplayRender:
         dL = None if δL is None else dr.select(keep, δL, 0.0)
         replay = Replay(mode, dL, dr.select(keep, L_primal, 0.0), self.seed,
                         integrator.gradient_estimator)
-        L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler, ray,
-                                       medium, media, active & keep, replay)
+        with traced_once():
+            L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler,
+                                           ray, medium, media, active & keep, replay)
         if mode == dr.ADMode.Forward:
             return integrator.sample_guard(dr.select(keep, grad, 0.0), active), valid, [], None
         return L, valid, [], None

@@ -588,3 +588,51 @@ def test_prbvolpath_gradient_equals_heterogeneous(tmp_path):
     a, b = grads["grid_medium"], grads["heterogeneous"]
     assert abs(b.sum()) > 1e-3
     np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("estimator", ["drt", "delta"])
+def test_optimisation_steps_compile_no_kernels(estimator):
+    """Issue 48: ten Adam steps on the density grid and ``scale`` (two views in turn, a new
+    seed per render, ``params.update()`` refitting the majorants each time) compile no
+    kernel after two warm-up steps: every value that changes between steps is opaque, so
+    each step launches the kernels the first ones compiled. Kernels are counted by Dr.Jit's
+    kernel history (``cache_hit`` False: compiled, not taken from the cache)."""
+    scene = base_scene()
+    params = mi.traverse(scene)
+    keys = [f"{GRID}.data", f"{GRID}.scale"]
+    sensors = [camera(res=8, origin=(0, 0, 4)), camera(res=8, origin=(4, 0, 0))]
+    sensors = [mi.load_dict(s) for s in sensors]
+    integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 4,
+                               "gradient_estimator": estimator})
+    references = [mi.render(scene, sensor=s, integrator=integrator, spp=16, seed=99)
+                  for s in sensors]
+    for key in keys:                                  # start away from the truth
+        params[key] = params[key] * 0.7
+    params.update()
+    opt = mi.ad.Adam(lr=0.05)
+    for key in keys:
+        opt[key] = params[key]
+    params.update(opt)
+
+    def step(it):
+        for v, sensor in enumerate(sensors):
+            img = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=4,
+                            seed=it * len(sensors) + v)
+            dr.backward(dr.mean(dr.square(img - references[v]), axis=None))
+        opt.step()
+        for key in keys:
+            opt[key] = dr.maximum(opt[key], 0.0)
+        params.update(opt)
+        dr.eval(*(params[key] for key in keys))
+    start = [np.array(params[key]) for key in keys]
+    for it in range(2):
+        step(it)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory):
+        for it in range(2, 12):
+            step(it)
+        history = dr.kernel_history([dr.KernelType.JIT])
+    compiled = [h["hash"] for h in history if not h["cache_hit"]]
+    assert len(history) > 0
+    for key, before in zip(keys, start):                   # both did change
+        assert not np.array_equal(np.array(params[key]), before), key
+    assert not compiled, f"{len(compiled)} kernels compiled during steps 3-12"
