@@ -280,13 +280,17 @@ class GridMedium(mi.Medium):
             dr.make_opaque(self.gray_scale)
 
     def _update_majorants(self) -> None:
-        """(Re)derive the global majorant and the majorant grid from the current data."""
+        """(Re)derive the global majorant and the majorant grid from the current data.
+        After an edit the cells keep the shape chosen at load and hot-cell refinement,
+        once on, stays on: an optimiser's steps change values, not kernels (issue 48)."""
         bounds = self.store.bounds(self.multiplier, self.cells, self.filename)
         source = f"filename '{self.filename}'" if self.filename else "the sigma_t volume"
+        previous = getattr(self, "_majorant_cells", None)
         m = majorant.derive(bounds.values, bounds.lows, bounds.grid_max, floats(self.scale)[0],
                             bounds.to_local, auto=self.auto_cells, voxels=self._voxels,
                             shape=None if self.filename is None else self.shape,
-                            plugin="grid_medium", source=source)
+                            plugin="grid_medium", source=source, cells=previous)
+        self._majorant_cells = m.cells
         self.global_majorant = m.global_majorant
         self.majorant_grid = m.grid
         #: the finest bounds, for marches whose steps shrink with the bound
@@ -294,7 +298,8 @@ class GridMedium(mi.Medium):
         #: what tracking needs to cut hot majorant segments into tighter pieces
         #: (mitsuba_plugins.tracking.walk.refined_piece), or None where no segment can be hot:
         #: then the kernels carry no refinement code at all
-        self.refinement = m.refinement
+        self.refinement = m.refinement if m.refinement is not None else \
+            getattr(self, "refinement", None)
 
     # -- mi.Medium interface ---------------------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):

@@ -33,6 +33,7 @@ SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.tracking.majoran
                    "mitsuba_plugins.tracking.transmittance",
                    "mitsuba_plugins.tracking.scene_media",
                    "mitsuba_plugins.tracking.replay",
+                   "mitsuba_plugins.tracking.empty_scatter",
                    "mitsuba_plugins.tracking.free_flights",
                    "mitsuba_plugins.tracking.marching",
                    "mitsuba_plugins.guiding.sampling",

@@ -17,7 +17,7 @@ from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
 from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_contribution
-from mitsuba_plugins.tracking import equiangular
+from mitsuba_plugins.tracking import empty_scatter, equiangular
 from mitsuba_plugins.tracking.homogeneous import (FreeFlight, homogeneous_free_flight,
                                                   sample_exponential)
 from mitsuba_plugins.tracking.replay import replay_homogeneous, replay_vertex
@@ -172,7 +172,11 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     ``guide`` (:class:`~mitsuba_plugins.guided_render.GuidedPass`): scattering directions
     in media resampled in proportion to the guiding field, and/or records that train it
-    (:mod:`mitsuba_plugins.guiding`)."""
+    (:mod:`mitsuba_plugins.guiding`).
+
+    In a replay through a gray heterogeneous medium a path that ends goes on as the
+    sub-path of one point where ``sigma_t = 0`` (:mod:`mitsuba_plugins.tracking.empty_scatter`):
+    its first vertex a real collision there, its light that term's ``L_s``."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -203,6 +207,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
+    empty = empty_scatter.EmptyScatter.empty() \
+        if replay is not None and empty_scatter.applies(media) else None
+    forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
+    dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
@@ -219,8 +227,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # ------------------- free flight through the medium -------------------
         if dr.hint(replay is not None, mode="scalar"):
             ctx.at_vertex(replay.L_primal - L)
+        if dr.hint(empty is not None, mode="scalar"):
+            empty.silence(replay, dL_path)
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
-                                  depth + 1 < max_depth, active)
+                             depth + 1 < max_depth, active if empty is None else active & ~forced)
         if dr.hint(eq, mode="scalar"):
             # a second light sample along the segment (where a flight's vertex would
             # sample one), by equiangular sampling toward a point or spot light
@@ -230,10 +240,18 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                                   integrator.shadow_roulette, eq_lanes)
             L += L_eq
             valid_ray |= dr.any(L_eq != 0)
+        if dr.hint(empty is not None, mode="scalar"):
+            empty = empty.consider(replay, media, medium, ray,
+                                   dr.select(flight.scattered, flight.t, si.t), beta, depth,
+                                   active & (depth + 1 < max_depth))
         beta = flight.beta
         r_u = flight.r_u
         scattered = flight.scattered
         t_s = flight.t
+        if dr.hint(empty is not None, mode="scalar"):
+            scattered |= forced
+            t_s = dr.select(forced, 0.0, t_s)
+            forced = mi.Bool(False)
         if dr.hint(replay is not None, mode="scalar"):
             grad += flight.grad
         if dr.hint(strategy.gathers_light(media), mode="scalar"):
@@ -340,8 +358,22 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # ------------------------------ advance ------------------------------
         active = alive & (real | null) & (depth < max_depth)
         active &= ~(scattered & (phase_pdf_s <= 0))
+        if dr.hint(empty is not None, mode="scalar"):
+            # a path that ends goes on as the sub-path of its kept point
+            go = empty.restart(active, L, valid_ray, grad)
+            ray[go] = mi.Ray3f(empty.p, empty.d, ray.time, ray.wavelengths)
+            medium[go] = empty.medium
+            depth[go] = empty.depth
+            beta[go], r_u[go], eta[go], L[go] = 1.0, 1.0, 1.0, 0.0
+            prev_delta[go] = True
+            forced |= go
+            active |= go
 
     if dr.hint(replay is not None, mode="scalar"):
+        if dr.hint(empty is not None, mode="scalar"):
+            L_s, L, valid_ray, grad = empty.end(L, valid_ray, grad)
+            replay.dL = dL_path
+            grad += empty.finish(replay, media, L_s, valid_ray)
         return dr.select(valid_ray, L, 0.0), valid_ray, dr.select(valid_ray, grad, 0.0)
     if dr.hint(recording, mode="scalar"):
         records.flush(guide.field, L, mi.Bool(True))

@@ -80,6 +80,7 @@ class Majorants:
     grid: MajorantGrid               # per-cell bounds and minorants, with the DDA
     march_grid: MajorantGrid         # the finest bounds, for majorant-mode marches
     refinement: tuple | None         # (voxels per local unit, trilinear) if cells can be hot
+    cells: tuple                     # the cells' shape (Z, Y, X) tracking walks
 
 
 def world_linear(to_local) -> np.ndarray:
@@ -90,7 +91,7 @@ def world_linear(to_local) -> np.ndarray:
 
 def derive(values: np.ndarray, lows: np.ndarray, grid_max: float, scale: float, to_local,
            auto: bool, voxels=None, shape=None, plugin: str = "medium",
-           source: str = "the medium") -> Majorants:
+           source: str = "the medium", cells=None) -> Majorants:
     """A medium's :class:`Majorants` from cell bounds ``values`` / ``lows`` and the
     largest value ``grid_max`` (all before ``scale``), over the unit cube of
     ``to_local``'s frame.
@@ -99,12 +100,16 @@ def derive(values: np.ndarray, lows: np.ndarray, grid_max: float, scale: float, 
     the fine bounds). ``voxels``: ``(voxels per local unit, trilinear)`` of a voxel grid
     (None: lookups are not ours, nothing to refine); ``shape``: its ``(Z, Y, X, ...)``,
     for the voxel optical-depth check. Extinctions that float32 cannot hold are refused
-    naming ``plugin``'s parameter ``scale`` and ``source``."""
+    naming ``plugin``'s parameter ``scale`` and ``source``.
+
+    ``cells``: the cells' shape to keep (a former :attr:`Majorants.cells`) instead of
+    ``auto``'s choice: after an edit of the values (an optimiser's step) the kernels then
+    walk the same grid and are not compiled again (issue 48); the bounds stay bounds."""
     scale32 = np.float32(scale)
     fine = None   # the bounds as built, when tracking gets coarser ones
-    if auto and to_local is not None and values.size > 1:
-        coarse = auto_resolution(values, float(scale32),
-                                 np.linalg.norm(world_linear(to_local), axis=0))
+    if (auto or cells is not None) and to_local is not None and values.size > 1:
+        coarse = tuple(cells) if cells is not None else auto_resolution(
+            values, float(scale32), np.linalg.norm(world_linear(to_local), axis=0))
         if coarse != values.shape:
             fine = values
             values, lows = pool(values, coarse), pool(lows, coarse, np.min)
@@ -121,7 +126,7 @@ def derive(values: np.ndarray, lows: np.ndarray, grid_max: float, scale: float, 
         # takes step_optical_depth / sigma_maj steps per unit length: the finest bounds
         march_grid=grid if fine is None else MajorantGrid(fine * scale32, to_local,
                                                           float(majorant)),
-        refinement=voxels if hot else None)
+        refinement=voxels if hot else None, cells=tuple(values.shape))
 
 
 def _has_hot_cells(cells: np.ndarray, to_local) -> bool:

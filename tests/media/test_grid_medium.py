@@ -406,3 +406,27 @@ def test_tiny_negatives_are_set_to_zero_with_a_warning(tmp_path, storage):
     with pytest.raises(Exception, match="density: negative value -0.01; allowed: >= 0"):
         mi.load_dict({"type": "grid_medium", "filename": str(tmp_path / "negative.vol"),
                       "storage": storage})
+
+
+def test_edits_keep_the_majorant_cells_and_refinement(grids):
+    """Issue 48: after an edit (an optimiser's step) the majorant grid keeps the shape of
+    cells chosen at load and hot-cell refinement, once on, stays on, so the kernels stay
+    the same; the new bounds still bound. A fresh load at the edited scale chooses other
+    cells (so the edit would have changed them)."""
+    def load_at(scale):
+        scene = _scene({"type": "grid_medium", "filename": str(grids / "gray.vol"),
+                        "scale": scale})
+        return scene, scene.shapes()[0].interior_medium()
+    scene, medium = load_at(0.05)
+    cells, refinement = medium.majorant_grid.resolution, medium.refinement
+    params = mi.traverse(scene)
+    params["box.interior_medium.scale"] = 500.0
+    params.update()
+    _, fresh = load_at(500.0)
+    assert fresh.majorant_grid.resolution != cells
+    assert medium.majorant_grid.resolution == cells
+    assert (refinement is None) and medium.refinement is not None   # switched on once
+    assert float(medium.global_majorant[0]) == pytest.approx(float(fresh.global_majorant[0]))
+    params["box.interior_medium.scale"] = 0.05
+    params.update()
+    assert medium.majorant_grid.resolution == cells and medium.refinement is not None
