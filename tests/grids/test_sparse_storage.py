@@ -173,8 +173,10 @@ def test_storage_choice_and_errors(tmp_path):
 def test_traverse_and_update(tmp_path):
     """Sparse storage exposes scale, sigma_t and the pool as ``bricks`` (no dense
     ``data``); a changed scale rescales the majorants and the render follows (same as
-    loading with that scale)."""
-    spec = grid(filename=SPARSE, storage="sparse")
+    loading with that scale). The majorant cells are given: chosen automatically, an edit
+    keeps the load's choice (no new kernels in an optimisation loop) while a load at the
+    new scale may choose others, and the two renders would then draw other numbers."""
+    spec = grid(filename=SPARSE, storage="sparse", majorant_resolution=16)
     scene = media_scene(spec, sensor=camera(res=8))
     params = mi.traverse(scene)
     keys = [k for k in params.keys() if k.startswith("ball.")]
