@@ -35,6 +35,7 @@ from benchmarks.harness import device_model
 import mitsuba as mi
 
 from mitsuba_plugins import output
+from mitsuba_plugins.tools import stats
 from mitsuba_plugins.tools.scenes import camera, homogeneous, media_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -209,8 +210,7 @@ def ceiling(args) -> dict:
         sensor = scene.sensors()[0]
 
         def rel(img):
-            img = np.array(img)[..., :3]
-            return float(np.mean((img - ref[..., :3]) ** 2 / (ref[..., :3] ** 2 + 1e-2)))
+            return stats.rel_mse(np.array(img)[..., :3], ref[..., :3])
         off = mi.load_dict({"type": "volpath_delta"})
         base = [rel(mi.render(scene, integrator=off, spp=args.spp, seed=100 + s))
                 for s in range(args.runs)]

@@ -200,6 +200,9 @@ class GridMedium(mi.Medium):
             if p.has("has_spectral_extinction") else None
         self.m_is_homogeneous = False
         self._update_chromatic()
+        #: the majorant cells' shape and the hot-cell refinement, both chosen at load and
+        #: kept across edits (_update_majorants)
+        self._majorant_cells, self.refinement = None, None
         self._update_majorants()
 
     def _update_chromatic(self) -> None:
@@ -285,11 +288,10 @@ class GridMedium(mi.Medium):
         once on, stays on: an optimiser's steps change values, not kernels (issue 48)."""
         bounds = self.store.bounds(self.multiplier, self.cells, self.filename)
         source = f"filename '{self.filename}'" if self.filename else "the sigma_t volume"
-        previous = getattr(self, "_majorant_cells", None)
         m = majorant.derive(bounds.values, bounds.lows, bounds.grid_max, floats(self.scale)[0],
                             bounds.to_local, auto=self.auto_cells, voxels=self._voxels,
                             shape=None if self.filename is None else self.shape,
-                            plugin="grid_medium", source=source, cells=previous)
+                            plugin="grid_medium", source=source, cells=self._majorant_cells)
         self._majorant_cells = m.cells
         self.global_majorant = m.global_majorant
         self.majorant_grid = m.grid
@@ -298,8 +300,7 @@ class GridMedium(mi.Medium):
         #: what tracking needs to cut hot majorant segments into tighter pieces
         #: (mitsuba_plugins.tracking.walk.refined_piece), or None where no segment can be hot:
         #: then the kernels carry no refinement code at all
-        self.refinement = m.refinement if m.refinement is not None else \
-            getattr(self, "refinement", None)
+        self.refinement = m.refinement if m.refinement is not None else self.refinement
 
     # -- mi.Medium interface ---------------------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
