@@ -207,8 +207,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
-    empty = empty_scatter.EmptyScatter.empty() \
-        if replay is not None and empty_scatter.applies(media) else None
+    empty = empty_scatter.for_replay(replay, media)
     forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
 
@@ -243,7 +242,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         if dr.hint(empty is not None, mode="scalar"):
             empty = empty.consider(replay, media, medium, ray,
                                    dr.select(flight.scattered, flight.t, si.t), beta, depth,
-                                   active & (depth + 1 < max_depth))
+                                   depth + 1 < max_depth, replay.L_primal - L, active)
         beta = flight.beta
         r_u = flight.r_u
         scattered = flight.scattered

@@ -45,6 +45,10 @@ from mitsuba_plugins.tracking.trackers import medium_interaction
 
 VARIANT = mi.variant()
 
+#: the smallest weight per unit length of a sample-matching candidate, as a fraction of
+#: the medium's largest extinction (:meth:`MatchedScatter.density_weight`)
+FLOOR = 0.05
+
 #: salts of the hashed numbers of a flight's point and of the reservoir's choice
 SALT_POINT, SALT_CHOICE = 0x51ED270B, 0x2545F491
 
@@ -76,11 +80,19 @@ class EmptyScatter:
                             mi.Bool(False), mi.Spectrum(0.0), mi.Bool(False),
                             mi.Spectrum(0.0))
 
+    def density_weight(self, tracker, sigma_t: mi.Spectrum) -> mi.Float:
+        """A candidate's weight per unit length and throughput at a point of this
+        extinction: 1 where it is 0 in every channel (the candidates), else 0."""
+        return dr.select(dr.all(sigma_t == 0.0), 1.0, 0.0)
+
     def consider(self, replay, media, medium: mi.MediumPtr, ray: mi.Ray3f, t_end: mi.Float,
-                 beta: mi.Spectrum, depth: mi.UInt32, active) -> "EmptyScatter":
+                 beta: mi.Spectrum, depth: mi.UInt32, scatters, after: mi.Spectrum,
+                 active) -> "EmptyScatter":
         """The flight of ``ray`` over ``[0, t_end]`` in ``medium``, entered with ``beta``
-        at ``depth``: its candidate (if any) enters the reservoir (not in sub-paths)."""
-        active = active & ~self.sub
+        at ``depth`` (``scatters``: the path may scatter in it), ``after`` the light the
+        path gathers from the flight's start on: its candidate (if any) enters the
+        reservoir (not in sub-paths)."""
+        active = active & ~self.sub & scatters
         u_point = replay.uniform(ray, mi.Float(SALT_POINT))
         u_choice = replay.uniform(ray, mi.Float(SALT_CHOICE))
 
@@ -88,11 +100,11 @@ class EmptyScatter:
             t_in, t_out = tracker.bounds(ray, t_end)
             length = dr.maximum(t_out - t_in, 0.0)
             s = t_in + u_point * length
-            empty = dr.all(tracker.sigma_t(medium_interaction(ray, s), mask) == 0.0)
-            return mi.Vector2f(dr.select(mask & empty & (length > 0), length, 0.0), s)
-        length, s = media.dispatch(medium, active & dr.isfinite(t_end), mi.Vector2f(0.0),
-                                   lambda mask: mi.Vector2f(0.0), heterogeneous)
-        w = length * dr.mean(beta)
+            rho = self.density_weight(tracker, tracker.sigma_t(medium_interaction(ray, s), mask))
+            return mi.Vector3f(dr.select(mask & (length > 0), length * rho, 0.0), s, rho)
+        weight, s, rho = media.dispatch(medium, active & dr.isfinite(t_end), mi.Vector3f(0.0),
+                                        lambda mask: mi.Vector3f(0.0), heterogeneous)
+        w = weight * dr.mean(beta)
         candidate = active & (w > 0)
         self.W = dr.select(candidate, self.W + w, self.W)
         take = candidate & (u_choice * self.W < w)
@@ -101,7 +113,11 @@ class EmptyScatter:
         self.beta = dr.select(take, beta, self.beta)
         self.depth = dr.select(take, depth, self.depth)
         self.medium = dr.select(take, medium, self.medium)
+        self.keep(take, after, rho)
         return self
+
+    def keep(self, take, after, rho) -> None:
+        """What else the reservoir keeps of a chosen candidate (nothing here)."""
 
     def silence(self, replay, dL: mi.Spectrum) -> None:
         """The adjoint of this iteration: 0 on lanes that run their sub-path (backward
@@ -138,3 +154,77 @@ class EmptyScatter:
                 return tracker.properties(medium_interaction(ray, 0.0), mask).sigma_s
             return scale * L_s * media.call(self.medium, sigma_s, lanes)
         return replay.emit(attached(term), lanes)
+
+
+class MatchedScatter(EmptyScatter):
+    r"""``gradient_estimator = "sm"`` (sample matching, one point per path): every
+    point of a flight through a gray heterogeneous medium is a candidate, at any depth,
+    and the kept one also keeps ``after``, the light the path gathered from its flight's
+    start on. At the end both halves of the extinction derivative are taken there,
+    ``W / mean(beta) (beta dsigma_s L_s - dsigma_t after)``: what a denser medium
+    scatters toward the path and what it blocks of the light behind (the path passed the
+    point: the track-length argument, as above). They replace the steps' and the real
+    collisions' terms of ``drt`` in these media (:class:`~mitsuba_plugins.tracking.
+    replay.SampleMatching`); unbiased for the same sum, and what the two halves share
+    cancels at the one point. Points where ``sigma_t = 0`` are candidates too, so it
+    carries :class:`EmptyScatter`'s term. Not for emitting media (``after`` would hold
+    the emission gathered before the point, :func:`check`)."""
+    DRJIT_STRUCT = dict(EmptyScatter.DRJIT_STRUCT, after=mi.Spectrum, rho=mi.Float)
+
+    def __init__(self, *args, after=None, rho=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.after, self.rho = after, rho
+
+    @staticmethod
+    def empty() -> "MatchedScatter":
+        base = EmptyScatter.empty()
+        return MatchedScatter(*(getattr(base, k) for k in EmptyScatter.DRJIT_STRUCT),
+                              after=mi.Spectrum(0.0), rho=mi.Float(1.0))
+
+    def density_weight(self, tracker, sigma_t: mi.Spectrum) -> mi.Float:
+        """The extinction, at least :data:`FLOOR` times the medium's largest: the
+        derivative of a density grid is mostly where the density is (an optimiser's
+        step, a scale, an albedo), and the floor keeps every point a candidate."""
+        return dr.maximum(dr.mean(sigma_t), FLOOR * tracker.grid.outside)
+
+    def consider(self, replay, media, medium, ray, t_end, beta, depth, scatters, after,
+                 active) -> "MatchedScatter":
+        # every flight: its transmittance matters where the path may scatter no more
+        return super().consider(replay, media, medium, ray, t_end, beta, depth,
+                                mi.Bool(True), after, active)
+
+    def keep(self, take, after, rho) -> None:
+        self.after = dr.select(take, after, self.after)
+        self.rho = dr.select(take, rho, self.rho)
+
+    def finish(self, replay, media, L_s: mi.Spectrum, active) -> mi.Spectrum:
+        lanes = active & self.sub
+        ray = mi.Ray3f(self.p, self.d)
+        mean = dr.mean(self.beta) * self.rho
+        norm = self.W / dr.select(mean > 0, mean, 1.0)
+
+        def term():
+            def difference(tracker, mask):
+                props = tracker.properties(medium_interaction(ray, 0.0), mask)
+                return norm * (self.beta * props.sigma_s * L_s - props.sigma_t * self.after)
+            return media.call(self.medium, difference, lanes)
+        return replay.emit(attached(term), lanes)
+
+
+def check(media) -> None:
+    """Refuse ``sm`` where it would be wrong, in one line."""
+    if media.chromatic_heterogeneous or media.emission:
+        raise ValueError("volpath_delta: gradient_estimator='sm' needs gray, non-emitting "
+                         "heterogeneous media (this scene has a chromatic or emitting one); "
+                         "allowed here: 'drt', 'delta'")
+
+
+def for_replay(replay, media):
+    """The reservoir of a replay through these media, or None: :class:`MatchedScatter`
+    for ``sm``, else :class:`EmptyScatter` where it :func:`applies`."""
+    if replay is None:
+        return None
+    if replay.flight.matched:
+        check(media)
+        return MatchedScatter.empty() if media.heterogeneous else None
+    return EmptyScatter.empty() if applies(media) else None

@@ -118,7 +118,8 @@ class DeltaTracking(NullCollisionRule):
             state.grad += replay.emit(attached(
                 lambda: beta * (props.sigma_t - props.sigma_s) * props.Le / sigma_maj), collide)
         after = self.remaining - state.L_e
-        state.grad += replay.factor(props.sigma_s, after, real)
+        if replay.flight.collision_scatter:
+            state.grad += replay.factor(props.sigma_s, after, real)
         grad = replay.flight.null_collision(replay, sigma_maj, props, after, collide & ~real)
         if grad is not None:
             state.grad += grad

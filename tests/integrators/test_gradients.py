@@ -3,9 +3,9 @@
 Every statistical check is Welch's t-test of the derivative of an image's mean along a
 parameter direction: ours (8 gradient renders, seeds 0-7) against central finite
 differences of the primal render with common random numbers (Richardson-extrapolated,
-8 seeds). A check fails below p = ALPHA: Sidak over the 19 t-tests of this module at a
-family-wise false-alarm rate of 1% (19 below and the 5 media configurations of
-Mitsuba's AD integrator tests, ``test_mitsuba_ad_configurations``). Forward against backward mode is exact (same seed,
+8 seeds). A check fails below p = ALPHA: Sidak over the TESTS t-tests of this module
+at a family-wise false-alarm rate of 1% (the media configurations of Mitsuba's AD
+integrator tests, ``test_mitsuba_ad_configurations``, included). Forward against backward mode is exact (same seed,
 same terms): ``<forward(v), w> = <v, backward(w)>`` to float rounding.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ from helpers import (SMOKE, camera, grid, load, make_vdb, media_scene,
                      software_dense_textures)
 from mitsuba_plugins.tools import gradcheck
 
-TESTS = 25
+TESTS = 31
 ALPHA = 1.0 - (1.0 - 0.01) ** (1.0 / TESTS)
 SEEDS = range(8)
 SPP_GRAD = 128
@@ -95,13 +95,14 @@ KEYS = [f"{GRID}.data", f"{GRID}.scale", f"{GRID}.albedo.value.value",
         f"{GRID}.phase_function.g", "floor.bsdf.reflectance.value"]
 
 
-@pytest.mark.parametrize("estimator", ["drt", "delta"])
+@pytest.mark.parametrize("estimator", ["drt", "delta", "sm"])
 def test_gradients_match_finite_differences(estimator):
     """Density (a smooth direction in the grid), scale, albedo, g and the floor's
-    reflectance; the estimators differ only in the density's derivative (scale, albedo,
-    g and the BSDF take the same terms), so ``delta`` checks the density alone."""
+    reflectance; ``delta`` differs from ``drt`` only in the density's derivative (scale,
+    albedo, g and the BSDF take the same terms), so it checks the density alone; ``sm``
+    moves ``sigma_s``'s terms too (density, scale, albedo), so it checks them all."""
     compare_with_finite_differences(
-        base_scene(), KEYS if estimator == "drt" else KEYS[:1],
+        base_scene(), KEYS[:1] if estimator == "delta" else KEYS,
         {"type": "volpath_delta", "max_depth": DEPTH, "gradient_estimator": estimator},
         estimator)
 
@@ -209,15 +210,17 @@ def test_sparse_bricks_gradient_equals_dense(tmp_path, monkeypatch):
                                atol=1e-5 * np.abs(dense).max())
 
 
-@pytest.mark.parametrize("albedo,depth", [(0.0, DEPTH), (0.85, 2), (0.85, DEPTH)])
-def test_density_grows_where_the_grid_is_empty(tmp_path, albedo, depth):
+@pytest.mark.parametrize("albedo,depth,estimator", [(0.0, DEPTH, "drt"), (0.85, 2, "drt"),
+                                                    (0.85, DEPTH, "drt"), (0.85, 2, "sm")])
+def test_density_grows_where_the_grid_is_empty(tmp_path, albedo, depth, estimator):
     """A direction that adds density only where the grid is 0 (over whole majorant cells:
     delta tracking samples no point there; the drt rules still do, shadow rays at a floor
     rate): ours against one-sided finite differences. Absorbing (albedo 0): the
     attenuation a new density would cause. Scattering: also the light it would scatter,
     which no real collision estimates where sigma_t = 0
     (:mod:`mitsuba_plugins.tracking.empty_scatter`; before it, at max_depth 2: -0.167
-    against finite differences' -0.081, t = -23.9)."""
+    against finite differences' -0.081, t = -23.9). ``sm`` takes both terms at its
+    matched points, which include these."""
     from mitsuba_plugins.grids import gridio
     data, _ = gridio.read_grid(SMOKE)
     data = data.copy()
@@ -230,7 +233,8 @@ def test_density_grows_where_the_grid_is_empty(tmp_path, albedo, depth):
     key = f"{GRID}.data"
     empty = (data == 0).astype(np.float64)
     direction = {key: gradcheck.smooth_direction(data.shape, 5) * empty * 0.5}
-    ours = mi.load_dict({"type": "volpath_delta", "max_depth": depth})
+    ours = mi.load_dict({"type": "volpath_delta", "max_depth": depth,
+                         "gradient_estimator": estimator})
     g = [gradcheck.backward_derivatives(scene, params, direction, ours, seed, SPP_GRAD)[key]
          for seed in SEEDS]
     primal = mi.load_dict({"type": "volpath_delta", "max_depth": depth})
@@ -238,7 +242,7 @@ def test_density_grows_where_the_grid_is_empty(tmp_path, albedo, depth):
                                       one_sided=True)     # density >= 0
           for seed in SEEDS]
     t, p = gradcheck.welch(g, fd)
-    print(f"empty cells, albedo {albedo}, max_depth {depth}: ours {np.mean(g):+.5f}, finite differences {np.mean(fd):+.5f}, "
+    print(f"empty cells, {estimator}, albedo {albedo}, max_depth {depth}: ours {np.mean(g):+.5f}, finite differences {np.mean(fd):+.5f}, "
           f"t = {t:+.2f}, p = {p:.2g}")
     assert abs(np.mean(fd)) > 3 * np.std(fd, ddof=1) / 8 ** .5
     assert p > ALPHA, (np.mean(g), np.mean(fd), t, p)
@@ -277,7 +281,8 @@ def test_sparse_and_emission_grids_and_albedo_grid(tmp_path):
         {"type": "volpath_delta", "max_depth": DEPTH}, "sparse-emission-albedo")
 
 
-def test_forward_equals_backward():
+@pytest.mark.parametrize("estimator", ["drt", "sm"])
+def test_forward_equals_backward(estimator):
     """<forward(v), w> = <v, backward(w)>: the same replay read both ways, exact up to
     float rounding (same seed)."""
     scene = base_scene()
@@ -285,7 +290,8 @@ def test_forward_equals_backward():
     # every kind: density, scale, albedo, HG g and the floor's BSDF
     dirs = directions(params, KEYS, seed=3)
     w = np.random.default_rng(4).uniform(0.0, 1.0, (8, 8, 3))
-    integrator = mi.load_dict({"type": "volpath_delta", "max_depth": DEPTH})
+    integrator = mi.load_dict({"type": "volpath_delta", "max_depth": DEPTH,
+                               "gradient_estimator": estimator})
     fwd = gradcheck.forward_image(scene, params, dirs, integrator, seed=5, spp=SPP_GRAD)
     bwd = gradcheck.backward_derivatives(scene, params, dirs, integrator, seed=5,
                                          spp=SPP_GRAD, weights=w)
@@ -547,6 +553,19 @@ def test_settings_without_gradients_are_refused(setting):
     assert f"volpath_delta: {message}" in _messages(info.value)
 
 
+def test_sample_matching_refuses_emitting_media():
+    """``sm`` keeps the light a path gathers after a flight's start, emission on the
+    flight included: refused in one line naming the allowed estimators."""
+    scene = media_scene(grid(emission={"type": "rgb", "value": [1.0, 0.5, 0.2]}),
+                        sensor=camera(res=8))
+    params = mi.traverse(scene)
+    key = f"{GRID}.data"
+    integrator = mi.load_dict({"type": "volpath_delta", "gradient_estimator": "sm"})
+    with pytest.raises(Exception) as info:
+        _differentiate(scene, params, key, integrator, "backward")
+    assert "gradient_estimator='sm' needs gray, non-emitting" in _messages(info.value)
+
+
 @pytest.mark.parametrize("key", ["light.emitter.radiance.value", "env.radiance.value"])
 def test_gradients_we_do_not_compute_are_refused(key):
     """Emitters: refused in one line naming the parameter, not 0. (Shapes' transforms go
@@ -601,7 +620,7 @@ def test_prbvolpath_gradient_equals_heterogeneous(tmp_path):
     np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4 * np.abs(b).max())
 
 
-@pytest.mark.parametrize("estimator", ["drt", "delta"])
+@pytest.mark.parametrize("estimator", ["drt", "delta", "sm"])
 def test_optimisation_steps_compile_no_kernels(estimator):
     """Issue 48: ten Adam steps on the density grid and ``scale`` (two views in turn, a new
     seed per render, ``params.update()`` refitting the majorants each time) compile no
