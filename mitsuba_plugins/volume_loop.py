@@ -226,6 +226,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # ------------------- free flight through the medium -------------------
         if dr.hint(replay is not None, mode="scalar"):
             ctx.at_vertex(replay.L_primal - L)
+            replay.at_depth(depth)
         if dr.hint(empty is not None, mode="scalar"):
             empty.silence(replay, dL_path)
         flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,

@@ -80,18 +80,19 @@ class EmptyScatter:
                             mi.Bool(False), mi.Spectrum(0.0), mi.Bool(False),
                             mi.Spectrum(0.0))
 
-    def density_weight(self, tracker, sigma_t: mi.Spectrum) -> mi.Float:
+    def density_weight(self, tracker, sigma_t: mi.Spectrum, matching) -> mi.Float:
         """A candidate's weight per unit length and throughput at a point of this
         extinction: 1 where it is 0 in every channel (the candidates), else 0."""
         return dr.select(dr.all(sigma_t == 0.0), 1.0, 0.0)
 
     def consider(self, replay, media, medium: mi.MediumPtr, ray: mi.Ray3f, t_end: mi.Float,
                  beta: mi.Spectrum, depth: mi.UInt32, scatters, after: mi.Spectrum,
-                 active) -> "EmptyScatter":
+                 active, matching=False) -> "EmptyScatter":
         """The flight of ``ray`` over ``[0, t_end]`` in ``medium``, entered with ``beta``
         at ``depth`` (``scatters``: the path may scatter in it), ``after`` the light the
         path gathers from the flight's start on: its candidate (if any) enters the
-        reservoir (not in sub-paths)."""
+        reservoir (not in sub-paths). ``matching``: lanes whose flight a subclass
+        treats otherwise (:class:`MatchedScatter`)."""
         active = active & ~self.sub & scatters
         u_point = replay.uniform(ray, mi.Float(SALT_POINT))
         u_choice = replay.uniform(ray, mi.Float(SALT_CHOICE))
@@ -100,7 +101,8 @@ class EmptyScatter:
             t_in, t_out = tracker.bounds(ray, t_end)
             length = dr.maximum(t_out - t_in, 0.0)
             s = t_in + u_point * length
-            rho = self.density_weight(tracker, tracker.sigma_t(medium_interaction(ray, s), mask))
+            rho = self.density_weight(tracker, tracker.sigma_t(medium_interaction(ray, s), mask),
+                                      matching)
             return mi.Vector3f(dr.select(mask & (length > 0), length * rho, 0.0), s, rho)
         weight, s, rho = media.dispatch(medium, active & dr.isfinite(t_end), mi.Vector3f(0.0),
                                         lambda mask: mi.Vector3f(0.0), heterogeneous)
@@ -181,17 +183,24 @@ class MatchedScatter(EmptyScatter):
         return MatchedScatter(*(getattr(base, k) for k in EmptyScatter.DRJIT_STRUCT),
                               after=mi.Spectrum(0.0), rho=mi.Float(1.0))
 
-    def density_weight(self, tracker, sigma_t: mi.Spectrum) -> mi.Float:
-        """The extinction, at least :data:`FLOOR` times the medium's largest: the
-        derivative of a density grid is mostly where the density is (an optimiser's
-        step, a scale, an albedo), and the floor keeps every point a candidate."""
-        return dr.maximum(dr.mean(sigma_t), FLOOR * tracker.grid.outside)
+    def density_weight(self, tracker, sigma_t: mi.Spectrum, matching) -> mi.Float:
+        """On a matched flight the extinction, at least :data:`FLOOR` times the
+        medium's largest (the derivative of a density grid is mostly where the density
+        is: an optimiser's step, a scale, an albedo; the floor keeps every point a
+        candidate); on the others :class:`EmptyScatter`'s."""
+        return dr.select(matching, dr.maximum(dr.mean(sigma_t), FLOOR * tracker.grid.outside),
+                         super().density_weight(tracker, sigma_t, matching))
 
     def consider(self, replay, media, medium, ray, t_end, beta, depth, scatters, after,
-                 active) -> "MatchedScatter":
-        # every flight: its transmittance matters where the path may scatter no more
+                 active, matching=False) -> "MatchedScatter":
+        # the camera's flights (depth 0) are matched: every point a candidate, even
+        # where the path may scatter no more (their transmittance matters), and both
+        # halves; later ones are EmptyScatter's (in-scattering where sigma_t = 0 only:
+        # no attenuation half, after = 0)
+        matching = replay.matching
         return super().consider(replay, media, medium, ray, t_end, beta, depth,
-                                mi.Bool(True), after, active)
+                                matching | scatters, dr.select(matching, after, 0.0), active,
+                                matching)
 
     def keep(self, take, after, rho) -> None:
         self.after = dr.select(take, after, self.after)

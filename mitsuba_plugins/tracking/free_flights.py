@@ -120,6 +120,8 @@ class DeltaTracking(NullCollisionRule):
         after = self.remaining - state.L_e
         if replay.flight.collision_scatter:
             state.grad += replay.factor(props.sigma_s, after, real)
+        else:
+            state.grad += replay.factor(props.sigma_s, after, real & ~replay.matching)
         grad = replay.flight.null_collision(replay, sigma_maj, props, after, collide & ~real)
         if grad is not None:
             state.grad += grad

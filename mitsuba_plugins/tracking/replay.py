@@ -104,6 +104,11 @@ class Replay:
         """A fresh :class:`HashStream` for one walk along ``ray``."""
         return HashStream(self.ray_key(ray, 1), mi.UInt32(0))
 
+    def at_depth(self, depth: mi.UInt32) -> None:
+        """Set ``matching``: the lanes whose next flight ``sm`` matches (the first, at
+        depth 0; a call, not an assignment, so that the loop takes it for no state)."""
+        self.matching = depth == 0
+
     @property
     def forward(self) -> bool:
         return self.mode == dr.ADMode.Forward
@@ -277,6 +282,11 @@ class SampleMatching(FlightGradient):
     name = "sm"
     collision_scatter = False
     matched = True
+
+    def travel(self, replay, tracker, ray, t, step, after, active):
+        # flights sm does not match: drt's terms
+        return DifferentialRatioTracking.travel(self, replay, tracker, ray, t, step, after,
+                                                active & ~replay.matching)
 
 
 #: ``gradient_estimator`` (``volpath_delta``): name -> rule

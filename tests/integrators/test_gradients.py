@@ -21,7 +21,7 @@ from helpers import (SMOKE, camera, grid, load, make_vdb, media_scene,
                      software_dense_textures)
 from mitsuba_plugins.tools import gradcheck
 
-TESTS = 31
+TESTS = 32
 ALPHA = 1.0 - (1.0 - 0.01) ** (1.0 / TESTS)
 SEEDS = range(8)
 SPP_GRAD = 128
@@ -211,7 +211,8 @@ def test_sparse_bricks_gradient_equals_dense(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("albedo,depth,estimator", [(0.0, DEPTH, "drt"), (0.85, 2, "drt"),
-                                                    (0.85, DEPTH, "drt"), (0.85, 2, "sm")])
+                                                    (0.85, DEPTH, "drt"), (0.85, 2, "sm"),
+                                                    (0.85, DEPTH, "sm")])
 def test_density_grows_where_the_grid_is_empty(tmp_path, albedo, depth, estimator):
     """A direction that adds density only where the grid is 0 (over whole majorant cells:
     delta tracking samples no point there; the drt rules still do, shadow rays at a floor
