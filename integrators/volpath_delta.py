@@ -85,9 +85,10 @@ class VolpathDelta(VolumetricIntegrator):
          tracking: minus the optical depth's derivative at points of a second random
          stream, Nimier-David et al. 2022) or ``delta`` (differentiate the
          delta-tracking estimator as ``prbvolpath`` does: null collisions weigh
-         ``sigma_n(theta) / sigma_n``) or ``sm`` (sample matching, one point per path:
-         the light a denser medium would scatter and the light it would block, both at
-         that point, one sub-path for the first; gray, non-emitting media only).
+         ``sigma_n(theta) / sigma_n``) or ``sm`` (sample matching: on the camera's
+         flights the light a denser medium would scatter and the light it would block,
+         both at one point per path, one sub-path for the first; lower variance, gray,
+         non-emitting media only).
          Primal renders do not use it. (Default: ``drt``)
      * - guiding
        - |string|

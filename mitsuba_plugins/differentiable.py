@@ -45,8 +45,11 @@ class ReplayRender:
             L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
             return L, valid, [], (L, valid)
         L_primal, valid_primal = state_in
-        # lanes the primal pass zeroed (NaN/Inf, no valid ray) carry no derivative
-        keep = valid_primal & dr.all(dr.isfinite(L_primal))
+        # lanes the primal pass zeroed for NaN/Inf carry no derivative; lanes with no
+        # valid ray (nothing hit, emitters hidden) still do: a denser medium on their
+        # flights would scatter light toward them (the sub-path terms of
+        # tracking/empty_scatter.py), while every other term of theirs is 0 (L = 0)
+        keep = dr.all(dr.isfinite(L_primal))
         dL = None if δL is None else dr.select(keep, δL, 0.0)
         replay = Replay(mode, dL, dr.select(keep, L_primal, 0.0), self.seed,
                         integrator.gradient_estimator)

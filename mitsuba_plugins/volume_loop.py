@@ -373,8 +373,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         if dr.hint(empty is not None, mode="scalar"):
             L_s, L, valid_ray, grad = empty.end(L, valid_ray, grad)
             replay.dL = dL_path
-            grad += empty.finish(replay, media, L_s, valid_ray)
-        return dr.select(valid_ray, L, 0.0), valid_ray, dr.select(valid_ray, grad, 0.0)
+            grad += empty.finish(replay, media, L_s, mi.Bool(True))  # invalid lanes too
+        # the tangent is not masked by valid_ray: a lane that saw nothing (emitters
+        # hidden) may still carry a sub-path's in-scattering term
+        return dr.select(valid_ray, L, 0.0), valid_ray, grad
     if dr.hint(recording, mode="scalar"):
         records.flush(guide.field, L, mi.Bool(True))
     return dr.select(valid_ray, L, 0.0), valid_ray
