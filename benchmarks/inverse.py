@@ -8,6 +8,8 @@
 * ``reconstruct``: a density grid (the smoke, resampled to 32^3) from 8 views with
   ``mi.ad.Adam``, ours against prbvolpath at equal wall time: loss and relative L2 error
   of the grid over time; and an emission grid (prbvolpath ignores emission) with ours.
+* ``estimators``: the smoke's reconstruction with ``drt`` and ``sm`` at the same budget
+  (issue 48: which estimator reconstructs faster).
 
 Run from the repository root: ``python3 -m benchmarks.inverse [--part P] [--quick]``.
 Results: benchmarks/results/inverse.{md,json}, plots docs/results/inverse_*.png.
