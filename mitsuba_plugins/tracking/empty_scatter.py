@@ -160,17 +160,19 @@ class EmptyScatter:
 
 class MatchedScatter(EmptyScatter):
     r"""``gradient_estimator = "sm"`` (sample matching, one point per path): every
-    point of a flight through a gray heterogeneous medium is a candidate, at any depth,
-    and the kept one also keeps ``after``, the light the path gathered from its flight's
-    start on. At the end both halves of the extinction derivative are taken there,
-    ``W / mean(beta) (beta dsigma_s L_s - dsigma_t after)``: what a denser medium
+    point of the camera's flights (depth 0) through a gray heterogeneous medium is a
+    candidate (weight ``l mean(beta) rho``, ``rho`` from :meth:`density_weight`), and the
+    kept one also keeps ``after``, the light the path gathered from its flight's start
+    on. At the end both halves of the extinction derivative are taken there,
+    ``W / (mean(beta) rho) (beta dsigma_s L_s - dsigma_t after)``: what a denser medium
     scatters toward the path and what it blocks of the light behind (the path passed the
-    point: the track-length argument, as above). They replace the steps' and the real
-    collisions' terms of ``drt`` in these media (:class:`~mitsuba_plugins.tracking.
-    replay.SampleMatching`); unbiased for the same sum, and what the two halves share
-    cancels at the one point. Points where ``sigma_t = 0`` are candidates too, so it
-    carries :class:`EmptyScatter`'s term. Not for emitting media (``after`` would hold
-    the emission gathered before the point, :func:`check`)."""
+    point: the track-length argument, as above). They replace those flights' steps' and
+    real collisions' terms of ``drt`` (:class:`~mitsuba_plugins.tracking.replay.
+    SampleMatching`); unbiased for the same sum, and what the two halves share cancels
+    at the one point. Later flights' points where ``sigma_t = 0`` are candidates of the
+    same reservoir for :class:`EmptyScatter`'s term (``after = 0``, ``rho = 1``). Not for
+    emitting media (``after`` would hold the emission gathered before the point,
+    :func:`check`)."""
     DRJIT_STRUCT = dict(EmptyScatter.DRJIT_STRUCT, after=mi.Spectrum, rho=mi.Float)
 
     def __init__(self, *args, after=None, rho=None, **kwargs):

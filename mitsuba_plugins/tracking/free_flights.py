@@ -118,10 +118,7 @@ class DeltaTracking(NullCollisionRule):
             state.grad += replay.emit(attached(
                 lambda: beta * (props.sigma_t - props.sigma_s) * props.Le / sigma_maj), collide)
         after = self.remaining - state.L_e
-        if replay.flight.collision_scatter:
-            state.grad += replay.factor(props.sigma_s, after, real)
-        else:
-            state.grad += replay.factor(props.sigma_s, after, real & ~replay.matching)
+        state.grad += replay.factor(props.sigma_s, after, replay.flight.scattering(replay, real))
         grad = replay.flight.null_collision(replay, sigma_maj, props, after, collide & ~real)
         if grad is not None:
             state.grad += grad

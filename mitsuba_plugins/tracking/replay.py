@@ -230,12 +230,14 @@ class FlightGradient:
     free-flight rules are. A hook returns the tangent it adds, or None where the rule
     adds nothing there (then the kernel holds no code for it)."""
     name = ""
-    #: whether real collisions in heterogeneous media propagate ``sigma_s``'s derivative
-    #: (``sm`` estimates in-scattering at its own points instead)
-    collision_scatter = True
     #: whether the path keeps one matched point (:class:`~mitsuba_plugins.tracking.
     #: empty_scatter.MatchedScatter`) instead of one where ``sigma_t = 0``
     matched = False
+
+    def scattering(self, replay: Replay, real):
+        """The real collisions (in a heterogeneous medium) that propagate ``sigma_s``'s
+        derivative: all of them (``sm`` takes in-scattering elsewhere on its flights)."""
+        return real
 
     def travel(self, replay: Replay, tracker, ray: mi.Ray3f, t: mi.Float, step: mi.Float,
                after: mi.Spectrum, active):
@@ -275,13 +277,17 @@ class SampleMatching(FlightGradient):
     r"""``sm``: sample matching (Yu, Wang, Ling, Xu and Zhao 2026), one point per path.
     In heterogeneous media a flight's derivative is :math:`\int \partial\sigma_t(s)\,
     [\alpha L_s(s) - L(s)]\,ds` in front of the path so far: the light a denser medium
-    scatters toward the path minus the light it blocks, two terms of opposite sign. Both
-    are estimated at the same point (a reservoir over the path's flights, one sub-path
-    for :math:`L_s`: :class:`~mitsuba_plugins.tracking.empty_scatter.MatchedScatter`),
-    so what they share cancels; flights' steps and real collisions propagate nothing."""
+    scatters toward the path minus the light it blocks, two terms of opposite sign. On
+    the camera's flights (depth 0, ``replay.matching``) both are estimated at the same
+    point (a reservoir over those flights' points, one sub-path for :math:`L_s`:
+    :class:`~mitsuba_plugins.tracking.empty_scatter.MatchedScatter`), so what they share
+    cancels, and those flights' steps and real collisions propagate nothing; later
+    flights take ``drt``'s terms."""
     name = "sm"
-    collision_scatter = False
     matched = True
+
+    def scattering(self, replay, real):
+        return real & ~replay.matching
 
     def travel(self, replay, tracker, ray, t, step, after, active):
         # flights sm does not match: drt's terms
