@@ -35,7 +35,8 @@ from mitsuba_plugins.registry import default_variant  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 PLOTS = ROOT / "docs" / "results"
-METHODS = {"drt": {"type": "volpath_delta", "gradient_estimator": "drt"},
+METHODS = {"ours": {"type": "volpath_delta"},       # the default: gradient_estimator "auto"
+           "drt": {"type": "volpath_delta", "gradient_estimator": "drt"},
            "delta": {"type": "volpath_delta", "gradient_estimator": "delta"},
            "sm": {"type": "volpath_delta", "gradient_estimator": "sm"},
            "prbvolpath": {"type": "prbvolpath"}}
@@ -198,6 +199,14 @@ CASES = {
     "cloud 64^3": dict(grid=lambda: cloud(64), views=12, res=64, spp=16, scale=12.0,
                        lr=0.02, budget=200.0),
 }
+#: the learning rates are chosen per method on a problem of their own (``--part lr``: a
+#: different cloud, seed 11, at 32^3), not on CASES: each method's rate of LEARNING_RATES
+#: with the lowest final loss at this budget
+LR_TUNING = dict(grid=lambda: cloud(32, seed=11), views=8, res=64, spp=16, scale=12.0,
+                 budget=90.0)
+LEARNING_RATES = (0.01, 0.02, 0.04)
+#: the two methods of the reconstructions: ours (volpath_delta's defaults) and prbvolpath
+COMPARED = ("ours", "prbvolpath")
 
 
 def sync():
@@ -297,30 +306,57 @@ def time_to_reach(history, loss: float) -> float:
     return float("inf")
 
 
+def learning_rates(quick: bool) -> dict:
+    """Each compared method's final loss and error on LR_TUNING at each rate of
+    LEARNING_RATES (one seed, the methods alternating), and the rate it does best with."""
+    setup = {k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")}
+    budget = LR_TUNING["budget"] / (4 if quick else 1)
+    grid = LR_TUNING["grid"]()
+    runs = {m: {} for m in COMPARED}
+    for i, lr in enumerate(LEARNING_RATES):
+        for m in COMPARED if i % 2 == 0 else COMPARED[::-1]:
+            r = reconstruct(m, budget, grid=grid, lr=lr, **setup)
+            runs[m][str(lr)] = {"iterations": r["iterations"], "final": r["history"][-1]}
+    best = {m: float(min(r, key=lambda lr: r[lr]["final"]["loss"])) for m, r in runs.items()}
+    return {"setup": dict(setup, budget=budget, shape=list(grid.shape), grid="cloud seed 11"),
+            "runs": runs, "best": best}
+
+
+def chosen_rates(case: dict) -> dict:
+    """The rate each compared method does best with (``--part lr``, kept in inverse.json),
+    or the case's own where that part has not run."""
+    path = RESULTS / "inverse.json"
+    best = json.loads(path.read_text()).get("lr", {}).get("best", {}) if path.exists() else {}
+    return {m: best.get(m, case["lr"]) for m in COMPARED}
+
+
 def reconstruction(quick: bool, only=None) -> dict:
-    """Every case of CASES (or ``only``), ours against prbvolpath at the same budget, and
+    """Every case of CASES (or ``only``), ours against prbvolpath at the same budget, each
+    at its own learning rate (:func:`chosen_rates`), the order alternating by seed, and
     an emission-grid fit that prbvolpath cannot do (it ignores emission)."""
     out = {}
     for name, case in CASES.items():
         if only and name != only:
             continue
         budget = case["budget"] / (4 if quick else 1)
-        setup = {k: v for k, v in case.items() if k not in ("grid", "budget")}
+        setup = {k: v for k, v in case.items() if k not in ("grid", "budget", "lr")}
+        rates = chosen_rates(case)
         grid = case["grid"]()
         seeds = []
         for seed in SEEDS[:1] if quick else SEEDS:
-            runs = {m: reconstruct(m, budget, grid=grid, seed=seed, **setup)
-                    for m in ("drt", "prbvolpath")}
+            order = COMPARED if seed % 2 == 0 else COMPARED[::-1]
+            runs = {m: reconstruct(m, budget, grid=grid, seed=seed, lr=rates[m], **setup)
+                    for m in order}
             final = runs["prbvolpath"]["history"][-1]["loss"]
             seeds.append(dict(runs, seed=seed, prbvolpath_final_loss=float(final),
                               prbvolpath_seconds=runs["prbvolpath"]["history"][-1]["seconds"],
                               ours_time_to_prbvolpath_final_loss=time_to_reach(
-                                  runs["drt"]["history"], final)))
-        out[name] = dict(seeds=seeds, setup=dict(setup, budget=budget,
+                                  runs["ours"]["history"], final)))
+        out[name] = dict(seeds=seeds, setup=dict(setup, budget=budget, lr=rates,
                                                   shape=list(grid.shape)))
     if not only:
         out["emission (ours)"] = reconstruct(
-            "drt", 60.0 / (4 if quick else 1), views=8, res=32, spp=8,
+            "ours", 60.0 / (4 if quick else 1), views=8, res=32, spp=8,
             grid=resampled_smoke(16), scale=3.0, lr=0.05, emission=True)
     return out
 
@@ -350,12 +386,12 @@ def plot(results: dict) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    rec = {k: v for k, v in results.get("reconstruct", {}).items() if "seeds" in v}
+    rec = {k: v for k, v in results.get("reconstruct", {}).items() if compared(v)}
     if not rec:
         return
     fig, axes = plt.subplots(len(rec), 2, figsize=(10, 3.6 * len(rec)), squeeze=False)
     for row, (name, r) in zip(axes, rec.items()):
-        for method, colour in (("drt", "C0"), ("prbvolpath", "C1")):
+        for method, colour in (("ours", "C0"), ("prbvolpath", "C1")):
             for i, run in enumerate(r["seeds"]):
                 h = run[method]["history"]
                 t = [x["seconds"] for x in h]
@@ -373,6 +409,12 @@ def plot(results: dict) -> None:
     fig.savefig(PLOTS / "inverse_density.png", dpi=100)
 
 
+def compared(case: dict) -> bool:
+    """Whether a stored reconstruction is a comparison of COMPARED (results from before
+    ``ours`` meant the defaults stored it as ``drt``: not shown)."""
+    return "ours" in case.get("seeds", [{}])[0]
+
+
 def write(results: dict) -> None:
     from benchmarks.harness import device_model
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -382,7 +424,7 @@ def write(results: dict) -> None:
         old = json.loads(path.read_text())
     if "reconstruct" in results:      # one case at a time (--case) keeps the others
         kept = {k: v for k, v in old.get("reconstruct", {}).items()
-                if isinstance(v, dict) and ("seeds" in v or "history" in v)}
+                if isinstance(v, dict) and (compared(v) or "history" in v)}
         results = dict(results, reconstruct=dict(kept, **results["reconstruct"]))
     if "efficiency" in results:       # some scenes at a time (--scene) keeps the others
         results = dict(results, efficiency=dict(old.get("efficiency", {}),
@@ -418,25 +460,30 @@ def write(results: dict) -> None:
                   "fixed seeds (the same for both methods), R the 512-spp reference: an "
                   f"unbiased estimate of the squared error of the expected image, evaluated "
                   f"every {EVALUATE_EVERY} iterations.", "",
-                  "| case | seed | views x pixels, spp | iterations (ours, prbvolpath) | loss "
-                  "start -> prbvolpath final | ours reaches it after | final loss (ours) | "
-                  "final density error (ours, prbvolpath) |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "Ours: volpath_delta's defaults (gradient_estimator \"auto\": `sm` on "
+                  "these gray grids). Learning rates: each method's best on a problem of "
+                  "their own (below).", "",
+                  "| case | seed | views x pixels, spp | lr (ours, prbvolpath) | iterations "
+                  "(ours, prbvolpath) | loss start -> prbvolpath final | ours reaches it "
+                  "after | final loss (ours, prbvolpath) | final density error (ours, "
+                  "prbvolpath) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for name, case in old["reconstruct"].items():
-            if "seeds" not in case:
+            if not compared(case):
                 continue
             st = case["setup"]
             for r in case["seeds"]:
                 t = r["ours_time_to_prbvolpath_final_loss"]
+                ours, prb = r["ours"], r["prbvolpath"]
                 lines.append(
                     f"| {name} | {r['seed']} | {st['views']} x {st['res']}^2, {st['spp']} | "
-                    f"{r['drt']['iterations']}, {r['prbvolpath']['iterations']} | "
-                    f"{r['prbvolpath']['history'][0]['loss']:.3e} -> "
-                    f"{r['prbvolpath_final_loss']:.3e} | "
+                    f"{st['lr']['ours']:g}, {st['lr']['prbvolpath']:g} | "
+                    f"{ours['iterations']}, {prb['iterations']} | "
+                    f"{prb['history'][0]['loss']:.3e} -> {r['prbvolpath_final_loss']:.3e} | "
                     f"{'never' if not np.isfinite(t) else f'{t:.0f} s'} of "
-                    f"{r['prbvolpath_seconds']:.0f} s | {r['drt']['history'][-1]['loss']:.3e} | "
-                    f"{r['drt']['history'][-1]['error']:.3f}, "
-                    f"{r['prbvolpath']['history'][-1]['error']:.3f} |")
+                    f"{r['prbvolpath_seconds']:.0f} s | {ours['history'][-1]['loss']:.3e}, "
+                    f"{prb['history'][-1]['loss']:.3e} | "
+                    f"{ours['history'][-1]['error']:.3f}, {prb['history'][-1]['error']:.3f} |")
         lines += ["", "![loss and error over time](../../docs/results/inverse_density.png)", ""]
         e = old["reconstruct"].get("emission (ours)")
         if e:
@@ -444,6 +491,19 @@ def write(results: dict) -> None:
                       f"{e['iterations']} iterations, loss {e['history'][0]['loss']:.3e} -> "
                       f"{e['history'][-1]['loss']:.3e}, relative error of the emission grid "
                       f"{e['history'][0]['error']:.3f} -> {e['history'][-1]['error']:.3f}.", ""]
+    if "lr" in old:
+        t = old["lr"]
+        st = t["setup"]
+        lines += [f"## Learning rates ({st['grid']}, {st['shape'][0]}^3, {st['views']} x "
+                  f"{st['res']}^2, {st['spp']} spp, {st['budget']:.0f} s each, one seed)", "",
+                  "| lr | " + " | ".join(f"{m}: final loss, error" for m in t["runs"]) + " |",
+                  "|---|" + "---|" * len(t["runs"])]
+        for lr in next(iter(t["runs"].values())):
+            lines.append(f"| {float(lr):g} | " + " | ".join(
+                f"{r[lr]['final']['loss']:.3e}, {r[lr]['final']['error']:.3f}"
+                for r in t["runs"].values()) + " |")
+        lines += ["", "Chosen (lowest final loss): " + ", ".join(
+            f"{m} {lr:g}" for m, lr in t["best"].items()) + ".", ""]
     if "estimators" in old:
         e = old["estimators"]
         lines += [f"## Which estimator reconstructs faster ({e['case']}, {e['budget']:.0f} s "
@@ -484,7 +544,7 @@ def targets(results: dict) -> list:
                      f"({'met' if r <= 1.2 else 'missed'}).")
     if "reconstruct" in results:
         for name, case in results["reconstruct"].items():
-            if "seeds" not in case:
+            if not compared(case):
                 continue
             fractions = [r["ours_time_to_prbvolpath_final_loss"] / r["prbvolpath_seconds"]
                          for r in case["seeds"]]
@@ -494,12 +554,17 @@ def targets(results: dict) -> list:
                                      else f"{f:.2f}x" for f in fractions)
                          + f" of prbvolpath's time ({len(fractions)} seeds; "
                          f"{'met' if max(fractions) <= 0.5 else 'missed'}).")
+            lower = [all(r["ours"]["history"][-1][q] < r["prbvolpath"]["history"][-1][q]
+                         for q in ("loss", "error")) for r in case["seeds"]]
+            lines.append(f"- {name}: at equal time ours ends lower on loss and density error: "
+                         f"{sum(lower)} of {len(lower)} seeds "
+                         f"({'met' if all(lower) else 'missed'}).")
     return lines + [""]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--part", choices=("efficiency", "memory", "reconstruct",
+    parser.add_argument("--part", choices=("efficiency", "memory", "lr", "reconstruct",
                                            "estimators", "all"),
                         default="all")
     parser.add_argument("--quick", action="store_true")
@@ -517,6 +582,9 @@ def main() -> None:
         results["efficiency"] = efficiency(args.quick, args.scene)
     if args.part in ("memory", "all"):
         results["memory"] = {str(k): v for k, v in memory().items()}
+    if args.part in ("lr", "all"):
+        results["lr"] = learning_rates(args.quick)
+        write(results)                  # reconstruction reads the chosen rates from there
     if args.part in ("reconstruct", "all"):
         results["reconstruct"] = reconstruction(args.quick, args.case)
         plot(results)

@@ -9,6 +9,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.path_loop import traced_once
+from mitsuba_plugins.tracking import empty_scatter
 from mitsuba_plugins.tracking.replay import Replay
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.volume_loop import trace_volumes
@@ -52,7 +53,7 @@ class ReplayRender:
         keep = dr.all(dr.isfinite(L_primal))
         dL = None if δL is None else dr.select(keep, δL, 0.0)
         replay = Replay(mode, dL, dr.select(keep, L_primal, 0.0), self.seed,
-                        integrator.gradient_estimator)
+                        empty_scatter.resolve(integrator.gradient_estimator, media))
         with traced_once():
             L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler,
                                            ray, medium, media, active & keep, replay)

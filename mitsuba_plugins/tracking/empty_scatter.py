@@ -222,12 +222,27 @@ class MatchedScatter(EmptyScatter):
         return replay.emit(attached(term), lanes)
 
 
+def matches(media) -> bool:
+    """Whether ``sm`` applies to these media and changes anything: some heterogeneous
+    medium, none chromatic or emitting."""
+    return media.heterogeneous and not (media.chromatic_heterogeneous or media.emission)
+
+
+def resolve(estimator: str, media) -> str:
+    """The rule a replay through these media uses for ``gradient_estimator``:
+    ``auto`` is ``sm`` where it :func:`matches` (it reconstructs faster than ``drt``:
+    docs/benchmarks.md), else ``drt``; any other name is itself."""
+    if estimator != "auto":
+        return estimator
+    return "sm" if matches(media) else "drt"
+
+
 def check(media) -> None:
     """Refuse ``sm`` where it would be wrong, in one line."""
     if media.chromatic_heterogeneous or media.emission:
         raise ValueError("volpath_delta: gradient_estimator='sm' needs gray, non-emitting "
                          "heterogeneous media (this scene has a chromatic or emitting one); "
-                         "allowed here: 'drt', 'delta'")
+                         "allowed here: 'auto', 'drt', 'delta'")
 
 
 def for_replay(replay, media):
