@@ -204,7 +204,7 @@ CASES = {
 #: with the lowest final loss at this budget
 LR_TUNING = dict(grid=lambda: cloud(32, seed=11), views=8, res=64, spp=16, scale=12.0,
                  budget=90.0)
-LEARNING_RATES = (0.01, 0.02, 0.04)
+LEARNING_RATES = (0.01, 0.02, 0.04, 0.08)
 #: the two methods of the reconstructions: ours (volpath_delta's defaults) and prbvolpath
 COMPARED = ("ours", "prbvolpath")
 
@@ -308,18 +308,25 @@ def time_to_reach(history, loss: float) -> float:
 
 def learning_rates(quick: bool) -> dict:
     """Each compared method's final loss and error on LR_TUNING at each rate of
-    LEARNING_RATES (one seed, the methods alternating), and the rate it does best with."""
+    LEARNING_RATES (one seed, the methods alternating), and the rate it does best with.
+    Runs stored in inverse.json with the same setup are kept, not repeated (a rate added
+    to LEARNING_RATES runs alone)."""
     setup = {k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")}
     budget = LR_TUNING["budget"] / (4 if quick else 1)
     grid = LR_TUNING["grid"]()
-    runs = {m: {} for m in COMPARED}
+    setup = dict(setup, budget=budget, shape=list(grid.shape), grid="cloud seed 11")
+    path = RESULTS / "inverse.json"
+    stored = json.loads(path.read_text()).get("lr", {}) if path.exists() else {}
+    runs = stored["runs"] if stored.get("setup") == setup else {m: {} for m in COMPARED}
     for i, lr in enumerate(LEARNING_RATES):
         for m in COMPARED if i % 2 == 0 else COMPARED[::-1]:
-            r = reconstruct(m, budget, grid=grid, lr=lr, **setup)
+            if str(lr) in runs[m]:
+                continue
+            r = reconstruct(m, budget, grid=grid, lr=lr, **{
+                k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")})
             runs[m][str(lr)] = {"iterations": r["iterations"], "final": r["history"][-1]}
     best = {m: float(min(r, key=lambda lr: r[lr]["final"]["loss"])) for m, r in runs.items()}
-    return {"setup": dict(setup, budget=budget, shape=list(grid.shape), grid="cloud seed 11"),
-            "runs": runs, "best": best}
+    return {"setup": setup, "runs": runs, "best": best}
 
 
 def chosen_rates(case: dict) -> dict:

@@ -620,6 +620,34 @@ def test_auto_resolves_by_the_scene_media(flags, expected):
     assert [resolve(name, media) for name in ("drt", "delta", "sm")] == ["drt", "delta", "sm"]
 
 
+def test_sample_matching_on_mitsubas_heterogeneous_medium(tmp_path):
+    """Mitsuba's ``heterogeneous`` medium: our tracker treats it as chromatic where a
+    spectrum has several channels, so ``auto`` is ``drt`` there and ``sm`` is refused in
+    one line; in mono it is gray, ``auto`` is ``sm`` and its gradient is finite."""
+    from mitsuba_plugins.grids import gridio
+    from mitsuba_plugins.tracking.empty_scatter import resolve
+    from mitsuba_plugins.tracking.scene_media import SceneMedia
+    path = str(tmp_path / "g.vol")
+    gridio.write_vol(path, np.full((8, 8, 8, 1), 1.5, np.float32))
+    to_world = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)
+    scene = media_scene({"type": "heterogeneous", "albedo": 0.8, "scale": 2.0,
+                         "sigma_t": {"type": "gridvolume", "filename": path,
+                                     "to_world": to_world}}, sensor=camera(res=8))
+    params = mi.traverse(scene)
+    key = f"{GRID}.sigma_t.data"
+    integrator = mi.load_dict({"type": "volpath_delta", "gradient_estimator": "sm"})
+    if dr.size_v(mi.Spectrum) > 1:
+        assert resolve("auto", SceneMedia(scene)) == "drt"
+        with pytest.raises(Exception) as info:
+            _differentiate(scene, params, key, integrator, "backward")
+        assert "gradient_estimator='sm' needs gray, non-emitting" in _messages(info.value)
+    else:
+        assert resolve("auto", SceneMedia(scene)) == "sm"
+        _differentiate(scene, params, key, integrator, "backward")
+        grad = np.array(dr.grad(params[key]))
+        assert np.all(np.isfinite(grad)) and np.any(grad != 0)
+
+
 @pytest.mark.parametrize("key", ["light.emitter.radiance.value", "env.radiance.value"])
 def test_gradients_we_do_not_compute_are_refused(key):
     """Emitters: refused in one line naming the parameter, not 0. (Shapes' transforms go
