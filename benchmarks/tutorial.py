@@ -27,7 +27,9 @@ git-ignored); its SHA-256 is recorded.
 ``python3 -m benchmarks.tutorial [--seeds 0 1] [--quick] [--lr-fine LR]`` writes
 ``benchmarks/results/tutorial.{md,json}`` and ``docs/results/tutorial.png`` (with
 ``--lr-fine``, the learning rate of both methods after the upsampling:
-``tutorial_lr<LR>.*``); ``--profile`` times one gradient render per method.
+``tutorial_lr<LR>.*``; with ``--lr-prb``, prbvolpath's learning rate in both phases,
+ours keeping the tutorial's: ``tutorial_prblr<LR>.*``); ``--profile`` times one
+gradient render per method.
 """
 from __future__ import annotations
 
@@ -106,7 +108,7 @@ def reference_grid(volume: Path, res: int) -> np.ndarray:
 class Run:
     """One optimisation (``method``, render seeds offset by ``seed``)."""
 
-    def __init__(self, method, views, references, volume, seed):
+    def __init__(self, method, views, references, volume, seed, lr=LR):
         self.views, self.references, self.seed = views, references, seed
         start = dr.full(mi.TensorXf, 0.002, (PHASES[0][0],) * 3 + (1,))
         self.scene = mi.load_dict(scene_dict({"type": "gridvolume",
@@ -116,7 +118,7 @@ class Run:
         # faster than volpath on this scene (its one global majorant)
         self.evaluator = mi.load_dict({"type": "volpath_delta"})
         self.params = mi.traverse(self.scene)
-        self.opt = mi.ad.Adam(lr=LR)
+        self.opt = mi.ad.Adam(lr=lr)
         self.opt[KEY] = self.params[KEY]
         self.params.update(self.opt)
         self.truth = {r: reference_grid(volume, r) for r, _, _ in PHASES}
@@ -166,10 +168,11 @@ class Run:
         self.spent += time.perf_counter() - t0
 
 
-def optimise(method, views, references, volume, seed, budget=None, lr_fine=LR) -> dict:
-    """The tutorial's schedule, ``lr_fine`` the learning rate after the upsampling; with
-    ``budget`` (seconds), the last phase goes on until it is spent."""
-    run = Run(method, views, references, volume, seed)
+def optimise(method, views, references, volume, seed, budget=None, lr_fine=LR,
+             lr=LR) -> dict:
+    """The tutorial's schedule at learning rate ``lr``, ``lr_fine`` after the upsampling;
+    with ``budget`` (seconds), the last phase goes on until it is spent."""
+    run = Run(method, views, references, volume, seed, lr)
     run.evaluate()
     phase_loss = []
     for p, (res, iterations, spp) in enumerate(PHASES):
@@ -312,6 +315,9 @@ def main() -> None:
     ap.add_argument("--lr-fine", type=float, default=LR,
                     help="Adam's learning rate after the upsampling, both methods (the "
                          "tutorial's: 0.02); another writes tutorial_lr<value>.*")
+    ap.add_argument("--lr-prb", type=float,
+                    help="prbvolpath's learning rate in both phases (ours keeps the "
+                         "tutorial's); writes tutorial_prblr<value>.*")
     args = ap.parse_args()
     if not args.volume.exists():
         raise SystemExit(f"--volume: {args.volume} does not exist (the tutorial's "
@@ -336,7 +342,7 @@ def main() -> None:
               "seeds": []}
     for seed in args.seeds:
         prb = optimise("prbvolpath", views, references, args.volume, seed,
-                       lr_fine=args.lr_fine)
+                       lr_fine=args.lr_prb or args.lr_fine, lr=args.lr_prb or LR)
         ours = optimise("volpath_delta", views, references, args.volume, seed,
                         budget=prb["seconds"], lr_fine=args.lr_fine)
         result["seeds"].append({"seed": seed, "prbvolpath": prb, "volpath_delta": ours})
@@ -344,6 +350,8 @@ def main() -> None:
         print(markdown(result))
         return
     name = "tutorial" if args.lr_fine == LR else f"tutorial_lr{args.lr_fine:g}"
+    if args.lr_prb:
+        name = f"tutorial_prblr{args.lr_prb:g}"
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{name}.md").write_text(markdown(result, name))
