@@ -319,10 +319,10 @@ def learning_rates(quick: bool) -> dict:
     LEARNING_RATES (one seed, the methods alternating), and the rate it does best with.
     Runs stored in inverse.json with the same setup are kept, not repeated (a rate added
     to LEARNING_RATES runs alone)."""
-    setup = {k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")}
+    problem = {k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")}
     budget = LR_TUNING["budget"] / (4 if quick else 1)
     grid = LR_TUNING["grid"]()
-    setup = dict(setup, budget=budget, shape=list(grid.shape), grid="cloud seed 11")
+    setup = dict(problem, budget=budget, shape=list(grid.shape), grid="cloud seed 11")
     path = RESULTS / "inverse.json"
     stored = json.loads(path.read_text()).get("lr", {}) if path.exists() else {}
     runs = stored["runs"] if stored.get("setup") == setup else {m: {} for m in COMPARED}
@@ -330,8 +330,7 @@ def learning_rates(quick: bool) -> dict:
         for m in COMPARED if i % 2 == 0 else COMPARED[::-1]:
             if str(lr) in runs[m]:
                 continue
-            r = reconstruct(m, budget, grid=grid, lr=lr, **{
-                k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")})
+            r = reconstruct(m, budget, grid=grid, lr=lr, **problem)
             runs[m][str(lr)] = {"iterations": r["iterations"], "final": r["history"][-1]}
     best = {m: float(min(r, key=lambda lr: r[lr]["final"]["loss"])) for m, r in runs.items()}
     return {"setup": setup, "runs": runs, "best": best}

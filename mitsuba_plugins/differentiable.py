@@ -45,7 +45,7 @@ class ReplayRender:
                                          ray, medium, media, active)
             L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
             return L, valid, [], (L, valid)
-        L_primal, valid_primal = state_in
+        L_primal, _ = state_in
         # lanes the primal pass zeroed for NaN/Inf carry no derivative; lanes with no
         # valid ray (nothing hit, emitters hidden) still do: a denser medium on their
         # flights would scatter light toward them (the sub-path terms of

@@ -222,10 +222,16 @@ class MatchedScatter(EmptyScatter):
         return replay.emit(attached(term), lanes)
 
 
+def refused(media) -> bool:
+    """Whether ``sm`` would be wrong in these media: a chromatic or emitting
+    heterogeneous one."""
+    return media.chromatic_heterogeneous or media.emission
+
+
 def matches(media) -> bool:
     """Whether ``sm`` applies to these media and changes anything: some heterogeneous
-    medium, none chromatic or emitting."""
-    return media.heterogeneous and not (media.chromatic_heterogeneous or media.emission)
+    medium, none :func:`refused`."""
+    return media.heterogeneous and not refused(media)
 
 
 def resolve(estimator: str, media) -> str:
@@ -239,7 +245,7 @@ def resolve(estimator: str, media) -> str:
 
 def check(media) -> None:
     """Refuse ``sm`` where it would be wrong, in one line."""
-    if media.chromatic_heterogeneous or media.emission:
+    if refused(media):
         raise ValueError("volpath_delta: gradient_estimator='sm' needs gray, non-emitting "
                          "heterogeneous media (this scene has a chromatic or emitting one); "
                          "allowed here: 'auto', 'drt', 'delta'")
