@@ -45,6 +45,14 @@ CONFIGS = {
     "guided_c8": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 8},
     "guided_r8": {"type": "volpath_delta", "guiding": "volumes", "guiding_resolution": 8},
     "guided_t50": {"type": "volpath_delta", "guiding": "volumes", "guiding_training": 0.5},
+    # roulette by the learnt radiance (guiding_roulette; 0: directions only, as before)
+    **{f"guided_rr{v:g}": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": v}
+       for v in (0.0, 0.1, 1.0)},
+    # guided distance sampling for next-event estimation (guiding_distance)
+    "guided_nod": {"type": "volpath_delta", "guiding": "volumes", "guiding_distance": False},
+    "guided_d_only": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": 0.0,
+                      "guiding_candidates": 1},
+    "guided_c1": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 1},
     # surfaces (path_rr), against Mitsuba's path
     "path_rr": {"type": "path_rr", "max_depth": 12},
     "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},
@@ -175,7 +183,7 @@ def picture(path: Path, res: int = 64, spp: int = 512) -> None:
     mi.render(scene, integrator=integrator, spp=spp)
     f = integrator.guiding_report.field
     r = f.resolution
-    W, V = f.sums[:, 0], f.sums[:, 1:]
+    W, V = f.sums[:, 0], f.sums[:, 1:4]
     drift = np.where((np.array(f.kappa) > 0)[:, None], V / np.maximum(W, 1e-30)[:, None], 0.0)
     k = r // 2                                   # the slice of cells at z = 0
     fig, ax = plt.subplots(figsize=(5, 5))

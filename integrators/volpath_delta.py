@@ -112,6 +112,17 @@ class VolpathDelta(VolumetricIntegrator):
        - |int|
        - Cells per axis of the guiding field over the media's bounds, in [1, 32].
          (Default: 4)
+     * - guiding_roulette
+       - |float|
+       - Roulette by the learnt radiance in guided passes: a path whose throughput times
+         the learnt fluence where it scatters falls below this share of what it was at
+         its first medium vertex survives with probability (share / this), at least
+         0.05, in [0, 1]; 0: none. (Default: 0.3)
+     * - guiding_distance
+       - |bool|
+       - In guided passes, take each segment's emitter sample in a homogeneous medium of
+         gray extinction at a point drawn toward where the learnt once-scattered light
+         is, not at the free-flight vertex (docs/method.md section 13). (Default: true)
      * - hide_emitters
        - |bool|
        - Hide emitters seen directly (also through media). (Default: false)
@@ -150,7 +161,7 @@ class VolpathDelta(VolumetricIntegrator):
     NAME = "volpath_delta"
     PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
                   "equiangular", "guiding", "guiding_candidates", "guiding_training",
-                  "guiding_resolution")
+                  "guiding_resolution", "guiding_roulette", "guiding_distance")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -165,6 +176,9 @@ class VolpathDelta(VolumetricIntegrator):
         guided_render.configure(self, p, ("volumes",), guided_render.RESOLUTION)
         self.guiding_candidates = p.int("guiding_candidates", guided_render.CANDIDATES, lo=1,
                                         hi=32)
+        self.guiding_roulette = p.float("guiding_roulette", guided_render.ROULETTE, lo=0.0,
+                                        hi=1.0)
+        self.guiding_distance = p.bool("guiding_distance", True)
         self.strategy = TrackingStrategy(FREE_FLIGHTS[self.free_flight],
                                          TRANSMITTANCE_ESTIMATORS[self.transmittance])
 

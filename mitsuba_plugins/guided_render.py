@@ -20,8 +20,10 @@ import time
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_plugins.guiding import distance
+from mitsuba_plugins.guiding.distance import LightGrid
 from mitsuba_plugins.guiding.field import GuidingField, media_bounds, scene_bounds
-from mitsuba_plugins.tracking.scene_media import SceneMedia
+from mitsuba_plugins.tracking.scene_media import SceneMedia, scene_media
 
 _common = mi.ad.integrators.common
 VARIANT = mi.variant()
@@ -30,6 +32,8 @@ VARIANT = mi.variant()
 CANDIDATES = 4
 TRAINING = 0.25
 RESOLUTION = 4
+#: default of volpath_delta's guiding_roulette (guiding.sampling.roulette)
+ROULETTE = 0.3
 
 
 class GuidedPass:
@@ -37,9 +41,10 @@ class GuidedPass:
     anything), whether it samples from it and whether it records into it."""
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
-                 fraction: float = 0.0):
+                 fraction: float = 0.0, roulette: float = 0.0, light=None):
         self.field, self.sampling, self.recording = field, sampling, recording
-        self.candidates, self.fraction = candidates, fraction
+        self.candidates, self.fraction, self.roulette = candidates, fraction, roulette
+        self.light = light         # guiding.distance.LightGrid, or None
 
 
 class _PassRender:
@@ -77,6 +82,7 @@ class GuidingReport:
     def __init__(self):
         self.passes, self.training_seconds, self.cells_guided, self.memory = [], 0.0, 0, 0
         self.field = None      # the field learnt (None without training passes)
+        self.light = None      # the light grid learnt (guiding_distance)
 
 
 def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.TensorXf:
@@ -92,9 +98,12 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         # nothing to guide (no medium), or too few samples to learn from: one plain pass
         report.passes = [spp]
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
-    field = GuidingField(scene_bounds(scene) if surfaces else media_bounds(scene),
-                         integrator.guiding_resolution)
-    report.memory, report.field = field.memory(), field
+    bounds = scene_bounds(scene) if surfaces else media_bounds(scene)
+    field = GuidingField(bounds, integrator.guiding_resolution)
+    light = LightGrid(bounds) if getattr(integrator, "guiding_distance", False) and \
+        not surfaces and distance.worthwhile(scene_media(scene), bounds) else None
+    report.memory = field.memory() + (light.memory() if light is not None else 0)
+    report.field, report.light = field, light
     image, t0 = None, time.perf_counter()
     for k, n in enumerate(plan):
         last = k == len(plan) - 1
@@ -102,7 +111,9 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
             report.training_seconds = time.perf_counter() - t0
         guide = GuidedPass(field, sampling=k > 0, recording=not last,
                            candidates=getattr(integrator, "guiding_candidates", 1),
-                           fraction=getattr(integrator, "guiding_fraction", 0.0))
+                           fraction=getattr(integrator, "guiding_fraction", 0.0),
+                           roulette=getattr(integrator, "guiding_roulette", 0.0),
+                           light=light)
         pass_seed = seed if k == 0 else \
             int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)
@@ -110,6 +121,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         if not last:
             dr.eval(image)
             report.cells_guided = field.update()
+            if light is not None:
+                light.update()
         report.passes.append(n)
     return image
 

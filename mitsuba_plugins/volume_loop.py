@@ -12,7 +12,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.guiding.sampling import Records, resample
+from mitsuba_plugins.guiding import distance
+from mitsuba_plugins.guiding.sampling import Records, resample, roulette
 from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
@@ -188,6 +189,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     ctx = VolumeContext(scene, media, emitters, sampler, phase_ctx, hero,
                         strategy.shadow_estimator(media), replay)
     eq = replay is None and equiangular.traced(integrator, scene, media)
+    gd = replay is None and not eq and distance.traced(guide, media) \
+        and "nee" in settings.terms
+    learn_light = distance.learning(guide)
 
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -207,6 +211,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
+    steered = guided and guide.roulette > 0           # roulette by the learnt radiance
+    rr_ref = mi.Float(0.0)                           # ... the path's score at its first vertex
     empty = empty_scatter.for_replay(replay, media)
     forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
@@ -214,7 +220,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
         # equiangular sampling needs the segment's end: no flight drawn before
-        reach = None if eq else strategy.reach(ctx, medium, ray, active)
+        reach = None if eq or gd else strategy.reach(ctx, medium, ray, active)
         if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         else:
@@ -240,6 +246,14 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                                   integrator.shadow_roulette, eq_lanes)
             L += L_eq
             valid_ray |= dr.any(L_eq != 0)
+        if dr.hint(gd, mode="scalar"):
+            # the segment's emitter sample at a point drawn toward where the learnt
+            # once-scattered light is (guiding.distance), not at its free-flight vertex
+            gd_lanes = active & (medium != None) & medium.is_homogeneous() \
+                & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
+            gd_point = distance.plan(ctx, guide.light, ray, medium, si, gd_lanes,
+                                     sampler.next_1d(gd_lanes))
+            gd_beta = beta * gd_point.factor
         if dr.hint(empty is not None, mode="scalar"):
             empty = empty.consider(replay, media, medium, ray,
                                    dr.select(flight.scattered, flight.t, si.t), beta, depth,
@@ -282,15 +296,24 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         nee_medium = scattered & medium.use_emitter_sampling()
         nee_surface = on_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         active_em = active_next & (nee_medium | nee_surface)
-        ds, em_weight = emitters.sample_direction(ref, sampler.next_2d(), active_em,
+        nee_ref, nee_beta, at_point = ref, beta, mi.Bool(False)
+        if dr.hint(gd, mode="scalar"):   # the segment's guided point samples instead
+            handled = gd_lanes & gd_point.valid
+            at_point = handled & gd_point.used(scattered)
+            active_em = (active_em & ~(scattered & handled)) | at_point
+            nee_ref = mi.Interaction3f(ref)
+            nee_ref.t[at_point], nee_ref.p[at_point] = gd_point.t, gd_point.p
+            nee_ref.n[at_point] = mi.Normal3f(0.0)
+            nee_beta = dr.select(at_point, gd_beta, beta)
+        ds, em_weight = emitters.sample_direction(nee_ref, sampler.next_2d(), active_em,
                                                   test_visibility=False)
         active_em &= ds.pdf != 0
         if dr.hint("nee" not in settings.terms, mode="scalar"):
             active_em = mi.Bool(False)
         wo = si.to_local(ds.d)
-        shadow_medium = dr.select(on_surface & si.is_medium_transition(),
+        shadow_medium = dr.select(on_surface & si.is_medium_transition() & ~at_point,
                                   si.target_medium(ds.d), medium)
-        T = shadow_transmittance(scene, media, ref, ds, shadow_medium, sampler,
+        T = shadow_transmittance(scene, media, nee_ref, ds, shadow_medium, sampler,
                                  ctx.estimator, active_em, integrator.shadow_roulette)
         if dr.hint(eq, mode="scalar"):   # the vertex's share of the two (balance heuristic)
             T *= equiangular.free_flight_weight(ray, si.t, eq_sigma_t, t_s, ds,
@@ -301,7 +324,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         u2 = sampler.next_2d()
         bsdf_val, p_b, bs, bsdf_weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, u1, u2,
                                                                on_surface)
-        phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, scattered)
+        in_medium = scattered | at_point                 # the emitter sample's vertex
+        phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, in_medium)
         wo_phase, phase_weight, phase_pdf_s = phase.sample(phase_ctx, mei, u1, u2, scattered)
         if dr.hint(guided, mode="scalar"):
             wo_phase, phase_weight, phase_pdf_s, f_wo = resample(
@@ -309,10 +333,17 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                 (wo_phase, phase_weight, phase_pdf_s), scattered)
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
-        f_l = dr.select(scattered, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
-        p_dir = dr.select(scattered, phase_pdf, p_b)
-        L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight * T,
-                                                         wo, f_l, p_dir), L)
+        f_l = dr.select(in_medium, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
+        p_dir = dr.select(in_medium, phase_pdf, p_b)
+        nee = emitter_contribution(integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir)
+        L[active_em] = dr.fma(nee_beta, nee, L)
+        if dr.hint(gd, mode="scalar"):
+            # a segment that passed through the medium gathered light: the pixel saw it
+            valid_ray |= at_point
+        if dr.hint(learn_light, mode="scalar"):
+            guide.light.record(nee_ref.p, dr.select(active_em, nee, 0.0),
+                               (nee_medium & active_next & ~handled) | at_point if gd
+                               else nee_medium & active_next)
         if dr.hint(replay is not None, mode="scalar"):
             def vertex_value(d_world, wo_local):
                 """The phase (medium) or BSDF (surface) value towards a direction, as a
@@ -354,6 +385,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         count("surface_vertices", on_surface & ~null)
         count("shadow_rays", active_em)
         beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
+        if dr.hint(steered, mode="scalar"):
+            rr_ref, beta, kept = roulette(guide.field, guide.roulette, rr_ref, mei.p, beta,
+                                          sampler.next_1d(), scattered & alive)
+            alive &= kept
 
         # ------------------------------ advance ------------------------------
         active = alive & (real | null) & (depth < max_depth)

@@ -48,6 +48,22 @@ FLAT = 1e-3
 MAX_BYTES = 64 << 20
 
 
+def grid_box(bbox) -> tuple:
+    """``(lo, 1 / size)`` of a grid over ``bbox`` (padded by 0.1%), as Python floats: an
+    mi.Point3f made from a NumPy array inside a symbolic loop read garbage (measured:
+    cells 26, 4, 0 where 346, 292, 165)."""
+    lo, hi = np.array(bbox.min, np.float64), np.array(bbox.max, np.float64)
+    pad = np.maximum((hi - lo) * 1e-3, 1e-4)
+    return [float(v) for v in lo - pad], [float(v) for v in 1.0 / (hi - lo + 2 * pad)]
+
+
+def grid_cell(lo, inv_size, r: int, p: mi.Point3f) -> mi.UInt32:
+    """The cell of an ``r^3`` grid over the box ``(lo, 1 / size)`` holding ``p`` (clamped)."""
+    x = (p - mi.Point3f(*lo)) * mi.Vector3f(*inv_size)
+    i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(x * r)), 0, r - 1))
+    return mi.UInt32((i.z * r + i.y) * r + i.x)
+
+
 def concentration(r: np.ndarray) -> np.ndarray:
     """``kappa`` of a vMF lobe of mean cosine ``r`` (Banerjee et al. 2005)."""
     r = np.clip(r, 0.0, MAX_COSINE)
@@ -65,48 +81,43 @@ class GuidingField:
             raise ValueError(f"guiding field of {self.cells} cells takes "
                              f"{self.memory() / 2**20:.0f} MiB; allowed: at most "
                              f"{MAX_BYTES >> 20} MiB")
-        lo, hi = np.array(bbox.min, np.float64), np.array(bbox.max, np.float64)
-        pad = np.maximum((hi - lo) * 1e-3, 1e-4)
-        # Python floats, not NumPy arrays: an mi.Point3f made from a NumPy array inside a
-        # symbolic loop read garbage (measured: cells 26, 4, 0 where 346, 292, 165)
-        self.lo = [float(v) for v in lo - pad]
-        self.inv_size = [float(v) for v in 1.0 / (hi - lo + 2 * pad)]
-        self.sums = np.zeros((self.cells, 4), np.float64)        # W, Vx, Vy, Vz
+        self.lo, self.inv_size = grid_box(bbox)
+        self.sums = np.zeros((self.cells, 5), np.float64)        # W, Vx, Vy, Vz, N
         self.records = np.zeros(self.cells, np.int64)
         self._upload(np.zeros((self.cells, 3)), np.zeros(self.cells))
 
     def memory(self) -> int:
         """Bytes of the device tables (lobes, accumulators) and the host sums."""
-        return self.cells * (4 * 4 + 4 * 4 + 4 + 8 * 4 + 8)
+        return self.cells * (4 * 4 + 4 + 5 * 4 + 4 + 5 * 8 + 8)
 
     # -- tables ------------------------------------------------------------------------
-    def _upload(self, mu: np.ndarray, kappa: np.ndarray) -> None:
+    def _upload(self, mu: np.ndarray, kappa: np.ndarray, fluence=None) -> None:
         self.mu = [mi.Float(mu[:, i].astype(np.float32)) for i in range(3)]
         self.kappa = mi.Float(kappa.astype(np.float32))
-        self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(4)]
+        self.fluence = mi.Float((np.zeros(self.cells) if fluence is None else fluence)
+                                .astype(np.float32))
+        self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(5)]
         self.acc_records = dr.zeros(mi.UInt32, self.cells)
-        dr.eval(*self.mu, self.kappa, *self.acc, self.acc_records)
+        dr.eval(*self.mu, self.kappa, self.fluence, *self.acc, self.acc_records)
 
     def update(self) -> int:
         """Fold the records of the last pass into the lobes (host side, between passes);
         returns how many cells have a lobe now."""
         self.sums += np.stack([np.array(a, np.float64) for a in self.acc], axis=1)
         self.records += np.array(self.acc_records, np.int64)
-        W, V = self.sums[:, 0], self.sums[:, 1:]
+        W, V, N = self.sums[:, 0], self.sums[:, 1:4], self.sums[:, 4]
         length = np.linalg.norm(V, axis=1)
-        fitted = (self.records >= MIN_RECORDS) & (W > 0) & np.isfinite(W) & (length > 0)
+        known = (self.records >= MIN_RECORDS) & (W > 0) & np.isfinite(W) & (N > 0)
+        fitted = known & (length > 0)
         mu = np.where(fitted[:, None], V / np.where(length > 0, length, 1.0)[:, None], 0.0)
         kappa = np.where(fitted, concentration(length / np.where(W > 0, W, 1.0)), 0.0)
-        self._upload(mu, kappa)
+        self._upload(mu, kappa, np.where(known, W / np.where(N > 0, N, 1.0), 0.0))
         return int(fitted.sum())
 
     # -- lookups (Dr.Jit, any variant) --------------------------------------------------
     def cell(self, p: mi.Point3f) -> mi.UInt32:
         """The cell holding ``p`` (clamped to the grid)."""
-        r = self.resolution
-        x = (p - mi.Point3f(*self.lo)) * mi.Vector3f(*self.inv_size)
-        i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(x * r)), 0, r - 1))
-        return mi.UInt32((i.z * r + i.y) * r + i.x)
+        return grid_cell(self.lo, self.inv_size, self.resolution, p)
 
     def lobe(self, cell: mi.UInt32, active=True):
         """``(mu, kappa)`` of ``cell``."""
@@ -143,10 +154,18 @@ class GuidingField:
         phi = 2 * math.pi * u.y
         return frame.to_world(mi.Vector3f(s * dr.cos(phi), s * dr.sin(phi), cos))
 
-    def record(self, cell: mi.UInt32, d: mi.Vector3f, value: mi.Float, active) -> None:
-        """Add ``value`` (``Li / p`` of one vertex along ``d``) to ``cell``'s sums."""
+    def radiance(self, cell: mi.UInt32, active=True) -> mi.Float:
+        """The learnt fluence of ``cell`` (mean over its vertices of ``int Li``, channels
+        averaged); 0 where the cell has too few records to tell."""
+        return dr.gather(mi.Float, self.fluence, cell, active)
+
+    def record(self, cell: mi.UInt32, d: mi.Vector3f, value: mi.Float, active,
+               weight=1.0) -> None:
+        """Add ``value`` (``Li / p`` of one vertex along ``d``, times ``weight``: the
+        vertices the record stands for) to ``cell``'s sums, and ``weight`` to its count."""
         ok = active & dr.isfinite(value) & (value >= 0)
-        for acc, v in zip(self.acc, (value, value * d.x, value * d.y, value * d.z)):
+        for acc, v in zip(self.acc, (value, value * d.x, value * d.y, value * d.z,
+                                     mi.Float(weight))):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, v, cell, ok)
         dr.scatter_reduce(dr.ReduceOp.Add, self.acc_records, mi.UInt32(1), cell, ok)
 

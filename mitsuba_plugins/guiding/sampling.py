@@ -70,6 +70,33 @@ def resample(field, phase, phase_ctx, mei, sampler, candidates: int, first, acti
             dr.select(active, pdf, pdf0))
 
 
+#: guided roulette: a path whose expected contribution (throughput x the learnt fluence
+#: where it is) falls below this share of what it was at its first medium vertex plays
+#: roulette with survival (share / ROULETTE), never below MIN_SURVIVAL
+ROULETTE = 0.3
+MIN_SURVIVAL = 0.05
+
+
+def roulette(field, threshold: float, ref: mi.Float, p: mi.Point3f, beta: mi.Spectrum,
+             u: mi.Float, active: mi.Bool):
+    """Roulette by the learnt radiance (the killing half of Vorba and Krivanek 2016's
+    adjoint-driven roulette and splitting): at a medium vertex of learnt fluence ``phi``,
+    the path's score ``mean(beta) phi`` is compared with ``ref``, its score at its first
+    such vertex (an estimate of what the pixel expects of it); where the share ``s`` is
+    below ``threshold`` the path survives with ``max(s / threshold, MIN_SURVIVAL)`` and its
+    throughput is divided by that: unbiased for any field, since survival is never 0.
+    Returns ``(ref, beta, alive)``."""
+    phi = field.radiance(field.cell(p), active)
+    score = mi.Float(dr.mean(mi.Spectrum(beta))) * phi
+    known = active & (phi > 0)
+    first = known & (ref <= 0)
+    ref = dr.select(first, score, ref)
+    play = known & ~first & (score < threshold * ref)
+    q = dr.clip(score / (threshold * ref), MIN_SURVIVAL, 1.0)
+    beta = dr.select(play, beta * dr.rcp(q), beta)
+    return ref, beta, ~play | (u < q)
+
+
 def _fields():
     out = {"next": mi.UInt32}
     for k in range(SLOTS):
@@ -125,7 +152,7 @@ class Records:
         for k in range(SLOTS):
             field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"),
                          scale * self._value(L, getattr(self, f"L{k}"), getattr(self, f"w{k}")),
-                         active & getattr(self, f"valid{k}"))
+                         active & getattr(self, f"valid{k}"), scale)
 
 
 def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs, weight,

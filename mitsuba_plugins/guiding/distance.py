@@ -1,0 +1,205 @@
+"""Guided distance sampling for next-event estimation in homogeneous media
+(docs/method.md section 13).
+
+Where the light that scatters once at a point is bright in a small part of a medium (a
+beam through a gap, the neighbourhood of a small light), free flights seldom stop there,
+and the few that do carry large emitter samples: the fireflies that dominate such scenes
+(the 2% largest squared deviations carried 81-96% of the squared error of the guiding
+benchmark's gap room, camera in a cloud and forward-scattering ball; 29% on the smoke).
+
+:class:`LightGrid` learns, per cell of a grid over the media, the mean of what
+next-event estimation gathered at the free-flight vertices that fell in it (per unit of
+throughput, zeros included): where the once-scattered light is. Along each path segment
+``[0, t_end]`` of a homogeneous medium of gray extinction ``sigma``, one point is drawn
+with density proportional to ``sigma exp(-sigma t) D(t)``, ``D`` the grid's values at the
+midpoints of :data:`PIECES` equal pieces of ``[0, min(t_end, MAX_OPTICAL_DEPTH /
+sigma)]`` (the last piece reaching to ``t_end``; piecewise constant, and at least
+:data:`DEFENSIVE` times its largest value), and the segment's emitter sample is taken
+there instead of at the free-flight vertex (:func:`plan` says on which lanes and with
+which weight). The path loop keeps one shadow ray per iteration: adding this point's
+sample to the vertex's (balance heuristic over the two densities, as
+:mod:`~mitsuba_plugins.tracking.equiangular` does) cost 1.5-1.7x the time per sample,
+the vertex's code running on every SIMD lane anyway. Exact and unbiased for any grid.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_plugins.guiding.field import grid_box, grid_cell
+from mitsuba_plugins.tracking.trackers import medium_interaction
+
+#: cells per axis of the light grid
+RESOLUTION = 16
+#: equal pieces of a segment over which the density is piecewise constant
+PIECES = 8
+#: floor of a piece's value, as a share of the segment's largest
+DEFENSIVE = 0.05
+#: the guided density covers at most this optical depth from the segment's start
+MAX_OPTICAL_DEPTH = 30.0
+#: a cell's value is used once this many vertices fell in it
+MIN_RECORDS = 16
+#: guided distances are traced only where some homogeneous medium's optical depth across
+#: one cell of the grid is below this: in denser media a segment ends inside one cell,
+#: where the learnt values cannot shape its density (the tuning set's dense ball, optical
+#: depth 2.5 per cell, lost 1.77x -> 1.38x against volpath with them)
+MAX_CELL_DEPTH = 1.0
+
+
+def traced(guide, media) -> bool:
+    """Whether a render traces guided distance sampling: a guided pass asking for it, in a
+    scene with a homogeneous medium, none of them chromatic (their flights are weighted
+    over channels, docs/method.md section 7)."""
+    return (guide is not None and guide.sampling and guide.light is not None
+            and media.homogeneous and not media.chromatic_homogeneous)
+
+
+def worthwhile(media: list, bbox, resolution: int = RESOLUTION) -> bool:
+    """Whether a light grid over ``bbox`` can shape the segments of one of ``media``: a
+    homogeneous medium whose largest extinction times the grid's mean cell size is below
+    :data:`MAX_CELL_DEPTH` (host side, once per render)."""
+    size = float(np.mean(np.array(bbox.max) - np.array(bbox.min))) / resolution
+    for medium in media:
+        if not medium.is_homogeneous():
+            continue
+        mei = dr.zeros(mi.MediumInteraction3f)
+        mei.medium = mi.MediumPtr(medium)
+        _, _, sigma_t = medium.get_scattering_coefficients(mei)
+        if float(np.max(np.array(sigma_t))) * size < MAX_CELL_DEPTH:
+            return True
+    return False
+
+
+def learning(guide) -> bool:
+    """Whether a pass records what next-event estimation gathers into the light grid."""
+    return guide is not None and guide.recording and guide.light is not None
+
+
+class LightGrid:
+    """Per cell of an ``r^3`` grid over ``bbox``: the mean next-event estimate of the
+    free-flight vertices that fell in it (channels averaged), learnt between passes."""
+
+    def __init__(self, bbox, resolution: int = RESOLUTION):
+        self.resolution = int(resolution)
+        self.cells = self.resolution ** 3
+        self.lo, self.inv_size = grid_box(bbox)
+        self.sums = np.zeros((self.cells, 2), np.float64)     # value, vertices
+        self._upload(np.zeros(self.cells))
+
+    def memory(self) -> int:
+        return self.cells * (4 + 2 * 4 + 2 * 8)
+
+    def _upload(self, mean: np.ndarray) -> None:
+        self.mean = mi.Float(mean.astype(np.float32))
+        self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(2)]
+        dr.eval(self.mean, *self.acc)
+
+    def update(self) -> int:
+        """Fold the last pass's records in; returns the cells with a value."""
+        self.sums += np.stack([np.array(a, np.float64) for a in self.acc], axis=1)
+        value, n = self.sums[:, 0], self.sums[:, 1]
+        known = (n >= MIN_RECORDS) & np.isfinite(value) & (value > 0)
+        self._upload(np.where(known, value / np.where(n > 0, n, 1.0), 0.0))
+        return int(known.sum())
+
+    def cell(self, p: mi.Point3f) -> mi.UInt32:
+        return grid_cell(self.lo, self.inv_size, self.resolution, p)
+
+    def value(self, p: mi.Point3f, active=True) -> mi.Float:
+        return dr.gather(mi.Float, self.mean, self.cell(p), active)
+
+    def record(self, p: mi.Point3f, contribution: mi.Spectrum, active) -> None:
+        """One free-flight vertex's emitter sample per unit of throughput (0 counts)."""
+        value = mi.Float(dr.mean(mi.Spectrum(contribution)))
+        ok = active & dr.isfinite(value) & (value >= 0)
+        cell = self.cell(p)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc[0], value, cell, ok)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc[1], mi.Float(1.0), cell, ok)
+
+
+class Segment:
+    """The guided density over ``[0, t_end]`` of ``ray`` (unit direction) in a medium of
+    gray extinction ``sigma``: ``sigma exp(-sigma t) D_k / Z`` on piece ``k``; pieces of
+    length ``h``, the last one reaching to ``t_end`` (which may be infinite)."""
+
+    def __init__(self, grid: LightGrid, ray: mi.Ray3f, t_end: mi.Float, sigma: mi.Float,
+                 active):
+        self.sigma, self.t_end = sigma, t_end
+        self.h = dr.minimum(t_end, MAX_OPTICAL_DEPTH / dr.maximum(sigma, 1e-30)) / PIECES
+        D = [grid.value(ray((k + 0.5) * self.h), active) for k in range(PIECES)]
+        top = D[0]
+        for d in D[1:]:
+            top = dr.maximum(top, d)
+        # nothing learnt along the segment: the exponential truncated to it
+        self.D = [dr.select(top > 0, dr.maximum(d, DEFENSIVE * top), 1.0) for d in D]
+        decay = [dr.exp(-sigma * self.h * k) for k in range(PIECES)] + \
+            [dr.exp(-sigma * t_end)]
+        self.mass = [d * (a - b) for d, a, b in zip(self.D, decay[:-1], decay[1:])]
+        total = self.mass[0]
+        for m in self.mass[1:]:
+            total = total + m
+        self.Z = total
+        self.valid = active & (self.h > 0) & (sigma > 0) & (total > 0) & dr.isfinite(total)
+
+    def pdf(self, t: mi.Float) -> mi.Float:
+        k = dr.clip(mi.Int32(dr.floor(t / self.h)), 0, PIECES - 1)
+        D = mi.Float(0.0)
+        for j, d in enumerate(self.D):
+            D = dr.select(k == j, d, D)
+        p = self.sigma * dr.exp(-self.sigma * t) * D / self.Z
+        return dr.select(self.valid & (t >= 0) & (t < self.t_end), p, 0.0)
+
+    def sample(self, u: mi.Float) -> mi.Float:
+        target = u * self.Z
+        mass, before, a = self.mass[0], mi.Float(0.0), mi.Float(0.0)
+        running = self.mass[0]
+        for k in range(1, PIECES):
+            take = target >= running
+            mass = dr.select(take, self.mass[k], mass)
+            before = dr.select(take, running, before)
+            a = dr.select(take, k * self.h, a)
+            running = running + self.mass[k]
+        last = a >= (PIECES - 1) * self.h
+        b = dr.select(last, self.t_end, a + self.h)
+        # within the piece: the exponential truncated to [a, b]
+        v = dr.clip((target - before) / dr.maximum(mass, 1e-30), 0.0, 1.0)
+        span = 1.0 - dr.exp(-self.sigma * (b - a))
+        t = a - dr.log(dr.maximum(1.0 - v * span, 1e-30)) / self.sigma
+        return dr.clip(t, a, b)
+
+
+class Point:
+    """A segment's guided point for next-event estimation (:func:`plan`)."""
+
+    def __init__(self, p, t, factor, always, valid):
+        self.p, self.t, self.factor, self.always, self.valid = p, t, factor, always, valid
+
+    def used(self, scattered: mi.Bool) -> mi.Bool:
+        """The lanes whose emitter sample is taken at the point: all valid lanes whose
+        segment ends where no other emitter sample is taken, else those that collided."""
+        return self.valid & (self.always | scattered)
+
+
+def plan(ctx, grid: LightGrid, ray: mi.Ray3f, medium: mi.MediumPtr, si, eligible: mi.Bool,
+         u: mi.Float) -> Point:
+    """Draw the guided point of the segment ``[0, si.t]`` on the ``eligible`` lanes
+    (homogeneous media of gray extinction). Its emitter sample stands for the segment's
+    where the segment ends at no surface that samples emitters (nothing, or a null
+    surface): then on every lane, with weight ``sigma_s exp(-sigma t) / p(t)``. Where it
+    ends at such a surface (whose own emitter sample takes the iteration's shadow ray),
+    on the lanes whose flight collided, divided by the collision's probability ``1 -
+    exp(-sigma t_end)``. Either way its expectation is the segment's next-event term."""
+    mei = medium_interaction(ray, mi.Float(0.0))
+    mei.medium = medium
+    sigma_s, _, sigma = medium.get_scattering_coefficients(mei, eligible)
+    sigma = mi.Spectrum(sigma)[0]
+    t_end = si.t
+    seg = Segment(grid, ray, t_end, sigma, eligible)
+    t = seg.sample(u)
+    p_g = seg.pdf(t)
+    always = ~(si.is_valid() & mi.has_flag(si.bsdf(ray).flags(), mi.BSDFFlags.Smooth))
+    collide = 1.0 - dr.exp(-sigma * t_end)
+    valid = seg.valid & (p_g > 0) & (always | (collide > 0))
+    factor = mi.Spectrum(sigma_s) * dr.exp(-sigma * t) / (p_g * dr.select(always, 1.0, collide))
+    return Point(ray(t), t, dr.select(valid, factor, 0.0), always, valid)
