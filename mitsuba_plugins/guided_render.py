@@ -21,7 +21,6 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding import distance
-from mitsuba_plugins.guiding.distance import LightGrid
 from mitsuba_plugins.guiding.field import GuidingField, media_bounds, scene_bounds
 from mitsuba_plugins.tracking.scene_media import SceneMedia, scene_media
 
@@ -100,7 +99,7 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
     bounds = scene_bounds(scene) if surfaces else media_bounds(scene)
     field = GuidingField(bounds, integrator.guiding_resolution)
-    light = LightGrid(bounds) if getattr(integrator, "guiding_distance", False) and \
+    light = distance.LightGrid(bounds) if getattr(integrator, "guiding_distance", False) and \
         not surfaces and distance.worthwhile(scene_media(scene), bounds) else None
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light

@@ -212,7 +212,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
     steered = guided and guide.roulette > 0           # roulette by the learnt radiance
-    rr_ref = mi.Float(0.0)                           # ... the path's score at its first vertex
+    rr_ref = mi.Float(0.0) if steered else None      # ... the path's score at its first vertex
     empty = empty_scatter.for_replay(replay, media)
     forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)

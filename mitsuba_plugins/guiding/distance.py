@@ -8,8 +8,9 @@ and the few that do carry large emitter samples: the fireflies that dominate suc
 benchmark's gap room, camera in a cloud and forward-scattering ball; 29% on the smoke).
 
 :class:`LightGrid` learns, per cell of a grid over the media, the mean of what
-next-event estimation gathered at the free-flight vertices that fell in it (per unit of
-throughput, zeros included): where the once-scattered light is. Along each path segment
+next-event estimation gathered at the medium points that fell in it (free-flight
+vertices in the first pass, guided points after it; per unit of throughput, zeros
+included): where the once-scattered light is. Along each path segment
 ``[0, t_end]`` of a homogeneous medium of gray extinction ``sigma``, one point is drawn
 with density proportional to ``sigma exp(-sigma t) D(t)``, ``D`` the grid's values at the
 midpoints of :data:`PIECES` equal pieces of ``[0, min(t_end, MAX_OPTICAL_DEPTH /
@@ -78,7 +79,7 @@ def learning(guide) -> bool:
 
 class LightGrid:
     """Per cell of an ``r^3`` grid over ``bbox``: the mean next-event estimate of the
-    free-flight vertices that fell in it (channels averaged), learnt between passes."""
+    medium points that fell in it (channels averaged), learnt between passes."""
 
     def __init__(self, bbox, resolution: int = RESOLUTION):
         self.resolution = int(resolution)
@@ -110,7 +111,7 @@ class LightGrid:
         return dr.gather(mi.Float, self.mean, self.cell(p), active)
 
     def record(self, p: mi.Point3f, contribution: mi.Spectrum, active) -> None:
-        """One free-flight vertex's emitter sample per unit of throughput (0 counts)."""
+        """One medium point's emitter sample per unit of throughput (0 counts)."""
         value = mi.Float(dr.mean(mi.Spectrum(contribution)))
         ok = active & dr.isfinite(value) & (value >= 0)
         cell = self.cell(p)

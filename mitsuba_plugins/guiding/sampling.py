@@ -70,10 +70,8 @@ def resample(field, phase, phase_ctx, mei, sampler, candidates: int, first, acti
             dr.select(active, pdf, pdf0))
 
 
-#: guided roulette: a path whose expected contribution (throughput x the learnt fluence
-#: where it is) falls below this share of what it was at its first medium vertex plays
-#: roulette with survival (share / ROULETTE), never below MIN_SURVIVAL
-ROULETTE = 0.3
+#: the lowest survival probability of :func:`roulette` (its threshold is volpath_delta's
+#: ``guiding_roulette``, default ``guided_render.ROULETTE``)
 MIN_SURVIVAL = 0.05
 
 
