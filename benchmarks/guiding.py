@@ -128,10 +128,20 @@ def _inside(res: int) -> mi.Scene:
                        sensor=camera(res, medium=fog), env=0)
 
 
+def lamp_ball(res: int) -> mi.Scene:
+    """A fog ball (sigma_t 1.5, albedo 0.8, isotropic) holding a small spherical lamp
+    off its centre, over the floor; the camera outside (tuning: a light inside a medium)."""
+    scene = media_scene(homogeneous(1.5, albedo=0.8), sensor=camera(res), env=0, as_dict=True)
+    scene["light"] = {"type": "sphere", "center": [0.3, 0.2, -0.2], "radius": 0.08,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 400.0}}}
+    return mi.load_dict(scene)
+
+
 SCENES = {
     "dense_ball": ("tuning", lambda res: media_scene(homogeneous(20.0, albedo=0.95, g=0.5),
                                                      sensor=camera(res), env=0)),
     "gap_room": ("tuning", gap_room),
+    "lamp_ball": ("tuning", lamp_ball),
     "smoke": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "smoke.xml"),
                                                res=str(res))),
     "camera_inside": ("test", _inside),

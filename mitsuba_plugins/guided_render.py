@@ -99,8 +99,9 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
     bounds = scene_bounds(scene) if surfaces else media_bounds(scene)
     field = GuidingField(bounds, integrator.guiding_resolution)
-    light = distance.LightGrid(bounds) if getattr(integrator, "guiding_distance", False) and \
-        not surfaces and distance.worthwhile(scene_media(scene), bounds) else None
+    light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds)) \
+        if getattr(integrator, "guiding_distance", False) and not surfaces and \
+        distance.worthwhile(scene_media(scene), bounds) else None
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light
     image, t0 = None, time.perf_counter()

@@ -29,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_plugins.guiding.field import grid_box, grid_cell
+from mitsuba_plugins.tracking import equiangular
 from mitsuba_plugins.tracking.trackers import medium_interaction
 
 #: cells per axis of the light grid
@@ -41,6 +42,14 @@ DEFENSIVE = 0.05
 MAX_OPTICAL_DEPTH = 30.0
 #: a cell's value is used once this many vertices fell in it
 MIN_RECORDS = 16
+#: share of the guided density drawn toward small lights inside a medium (equiangular,
+#: one component per light of :func:`lamps`, equal shares)
+LAMP_SHARE = 0.5
+#: at most this many such lights (more: none; the density's cost grows with each)
+MAX_LAMPS = 4
+#: a shape emitter counts as small when its bounds' largest side is below this share of
+#: the guided box's smallest side
+SMALL_LAMP = 0.1
 #: guided distances are traced only where some homogeneous medium's optical depth across
 #: one cell of the grid is below this: in denser media a segment ends inside one cell,
 #: where the learnt values cannot shape its density (the tuning set's dense ball, optical
@@ -72,6 +81,53 @@ def worthwhile(media: list, bbox, resolution: int = RESOLUTION) -> bool:
     return False
 
 
+def lamps(scene: mi.Scene, bbox) -> list:
+    """Positions of the small lights that sit inside a medium (host side, once per
+    render): point and spot lights, and emitting shapes smaller than :data:`SMALL_LAMP` of
+    ``bbox``, whose centre a ray leaving in +x finds inside the interior of a shape that
+    bounds a medium. Near such a light the once-scattered light grows as the inverse
+    squared distance, which no grid of the media's size resolves; the guided density then
+    also draws toward it (equiangular). Empty where there are more than :data:`MAX_LAMPS`."""
+    small = SMALL_LAMP * float(np.min(np.array(bbox.max) - np.array(bbox.min)))
+    found = []
+    for emitter in scene.emitters():
+        if mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition):
+            it = dr.zeros(mi.Interaction3f)
+            ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
+            p = np.array(ds.p).ravel()
+        elif emitter.get_shape() is not None and emitter.get_shape().bbox().valid():
+            box = emitter.get_shape().bbox()
+            if float(np.max(np.array(box.max) - np.array(box.min))) >= small:
+                continue
+            p = np.array(box.center()).ravel()
+        else:
+            continue
+        if _inside_medium(scene, p):
+            found.append([float(x) for x in p])
+    return found if len(found) <= MAX_LAMPS else []
+
+
+def _inside_medium(scene: mi.Scene, p) -> bool:
+    """Whether a ray from ``p`` in +x first leaves a shape that bounds an interior medium
+    (emitting shapes and shapes without media are passed through)."""
+    ray = mi.Ray3f(mi.Point3f(*[float(x) for x in p]), mi.Vector3f(1.0, 0.0, 0.0))
+    for _ in range(16):
+        si = scene.ray_intersect(ray)
+        if not bool(dr.all(si.is_valid())):
+            return False
+        shape = si.shape
+        leaving = bool((dr.dot(si.n, ray.d) > 0)[0])
+        for s in scene.shapes():
+            if bool(dr.all(mi.ShapePtr(s) == shape)):
+                if s.interior_medium() is not None and leaving and not s.is_emitter():
+                    return True
+                if s.exterior_medium() is not None and not leaving and not s.is_emitter():
+                    return True
+                break
+        ray = si.spawn_ray(ray.d)
+    return False
+
+
 def learning(guide) -> bool:
     """Whether a pass records what next-event estimation gathers into the light grid."""
     return guide is not None and guide.recording and guide.light is not None
@@ -81,10 +137,13 @@ class LightGrid:
     """Per cell of an ``r^3`` grid over ``bbox``: the mean next-event estimate of the
     medium points that fell in it (channels averaged), learnt between passes."""
 
-    def __init__(self, bbox, resolution: int = RESOLUTION):
+    def __init__(self, bbox, resolution: int = RESOLUTION, lamps: list = ()):
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
         self.lo, self.inv_size = grid_box(bbox)
+        # where the density also draws toward (:func:`lamps`); opaque: a moved light
+        # compiles nothing new
+        self.lamps = [dr.opaque(mi.Point3f, p) for p in lamps]
         self.sums = np.zeros((self.cells, 2), np.float64)     # value, vertices
         self._upload(np.zeros(self.cells))
 
@@ -142,16 +201,38 @@ class Segment:
             total = total + m
         self.Z = total
         self.valid = active & (self.h > 0) & (sigma > 0) & (total > 0) & dr.isfinite(total)
+        # toward the small lights in a medium: equiangular components, LAMP_SHARE in all
+        self.lamps = [equiangular.Segment(ray, t_end, p) for p in grid.lamps]
+        self.share = LAMP_SHARE if self.lamps else 0.0
 
     def pdf(self, t: mi.Float) -> mi.Float:
         k = dr.clip(mi.Int32(dr.floor(t / self.h)), 0, PIECES - 1)
         D = mi.Float(0.0)
         for j, d in enumerate(self.D):
             D = dr.select(k == j, d, D)
-        p = self.sigma * dr.exp(-self.sigma * t) * D / self.Z
+        p = (1.0 - self.share) * self.sigma * dr.exp(-self.sigma * t) * D / self.Z
+        for lamp in self.lamps:
+            p += self.share / len(self.lamps) * lamp.pdf(t)
         return dr.select(self.valid & (t >= 0) & (t < self.t_end), p, 0.0)
 
     def sample(self, u: mi.Float) -> mi.Float:
+        """One distance: a lamp's equiangular component where ``u`` falls below the
+        lamps' share (``u`` rescaled to pick one and draw within it), else the learnt
+        density."""
+        if not self.lamps:
+            return self._sample_learnt(u)
+        n = len(self.lamps)
+        lamp_u = u / self.share * n
+        pick = dr.minimum(mi.UInt32(lamp_u), n - 1)
+        t_lamp = mi.Float(0.0)
+        for j, lamp in enumerate(self.lamps):
+            t_lamp = dr.select(pick == j, lamp.sample(dr.clip(lamp_u - j, 0.0, 1.0)), t_lamp)
+        t_lamp = dr.clip(t_lamp, 0.0, self.t_end)
+        t_learnt = self._sample_learnt(
+            dr.clip((u - self.share) / (1.0 - self.share), 0.0, 1.0))
+        return dr.select(u < self.share, t_lamp, t_learnt)
+
+    def _sample_learnt(self, u: mi.Float) -> mi.Float:
         target = u * self.Z
         mass, before, a = self.mass[0], mi.Float(0.0), mi.Float(0.0)
         running = self.mass[0]

@@ -16,8 +16,9 @@ from scipy import stats as scipy_stats
 
 from helpers import (assert_mean_equals, assert_same_expectation, cached_estimate, camera, grid,
                      homogeneous, load, loaded, media_scene, render)
+from mitsuba_plugins.guiding import distance
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
-from mitsuba_plugins.guiding.field import GuidingField
+from mitsuba_plugins.guiding.field import GuidingField, media_bounds
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
 
@@ -126,13 +127,16 @@ def test_guided_renders_estimate_the_same_image(case):
     assert_same_expectation(a, b, f"guiding-{case}")
 
 
-@pytest.mark.parametrize("t_end", [0.7, 3.0, math.inf])
-def test_distance_pdf_is_the_density_of_its_samples(t_end):
-    """Guided distances along a segment (a light grid of random cell values, some 0):
-    chi-square test (alpha 1e-3) of 2^18 samples over 40 bins of [0, min(t_end, 4)] and
-    the tail beyond, against the pdf integrated over each bin (64 midpoints per bin);
-    the pdf integrates to 1."""
-    grid = LightGrid(mi.ScalarBoundingBox3f([-1, -1, -1], [1, 1, 1]), resolution=4)
+@pytest.mark.parametrize("t_end, lamps", [
+    (0.7, ()), (3.0, ()), (math.inf, ()),
+    (3.0, ([0.1, 0.3, 0.1],)), (math.inf, ([0.1, 0.3, 0.1], [0.9, 0.2, -0.5]))])
+def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps):
+    """Guided distances along a segment (a light grid of random cell values, some 0; with
+    lamps, the equiangular components toward them too): chi-square test (alpha 1e-3) of
+    2^18 samples over 40 bins of [0, min(t_end, 4)] and the tail beyond, against the pdf
+    integrated over each bin (64 midpoints per bin); the pdf integrates to 1."""
+    grid = LightGrid(mi.ScalarBoundingBox3f([-1, -1, -1], [1, 1, 1]), resolution=4,
+                     lamps=list(lamps))
     rng = np.random.default_rng(3)
     values = rng.random(grid.cells) * (rng.random(grid.cells) > 0.3)
     grid.mean = mi.Float(values.astype(np.float32))
@@ -157,6 +161,29 @@ def test_distance_pdf_is_the_density_of_its_samples(t_end):
     expected = mass[keep] / mass[keep].sum() * observed[keep].sum()
     chi2 = float(((observed[keep] - expected) ** 2 / expected).sum())
     assert scipy_stats.chi2.sf(chi2, keep.sum() - 1) > 1e-3, chi2
+
+
+def test_lamps_are_small_lights_inside_a_medium():
+    """``distance.lamps``: a small sphere light and a point light inside a fog ball are
+    found (their centres); the same light outside the ball, a large one inside it, or
+    more than MAX_LAMPS are not."""
+    def scene(center, radius, point=None, n=1):
+        d = media_scene(homogeneous(1.0), env=0, as_dict=True)
+        for i in range(n):
+            d[f"light{i}"] = {"type": "sphere", "center": [center[0], center[1] + 0.01 * i,
+                                                           center[2]],
+                              "radius": radius, "emitter": {"type": "area"}}
+        del d["light"]
+        if point is not None:
+            d["point"] = {"type": "point", "position": point}
+        s = mi.load_dict(d)
+        return distance.lamps(s, media_bounds(s))
+    assert scene([0.2, 0.1, 0.0], 0.05) == [pytest.approx([0.2, 0.1, 0.0], abs=1e-5)]
+    assert scene([0.2, 3.0, 0.0], 0.05) == []
+    assert scene([0.2, 0.1, 0.0], 0.5) == []
+    assert scene([0.2, 3.0, 0.0], 0.05, point=[0.0, -0.3, 0.2]) == \
+        [pytest.approx([0.0, -0.3, 0.2], abs=1e-5)]
+    assert scene([0.2, 0.1, 0.0], 0.02, n=distance.MAX_LAMPS + 1) == []
 
 
 def test_guided_surfaces_estimate_the_same_image():
