@@ -219,9 +219,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
-        # equiangular sampling needs the segment's end: no flight drawn before
-        reach = None if eq or gd else strategy.reach(ctx, medium, ray, active)
-        if dr.hint(reach is None, mode="scalar"):
+        # equiangular sampling needs the segment's end: no flight drawn before; guided
+        # points need it too, and take the coefficients read with the flight's number
+        reach = None if eq else strategy.reach(ctx, medium, ray, active)
+        if dr.hint(reach is None or gd, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         else:
             si = scene.ray_intersect(mi.Ray3f(ray.o, ray.d, dr.minimum(ray.maxt, reach),
@@ -251,7 +252,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             # once-scattered light is (guiding.distance), not at its free-flight vertex
             gd_lanes = active & (medium != None) & medium.is_homogeneous() \
                 & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
-            gd_point = distance.plan(ctx, guide.light, ray, medium, si, gd_lanes,
+            gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], si, gd_lanes,
                                      sampler.next_1d(gd_lanes))
             gd_beta = beta * gd_point.factor
         if dr.hint(empty is not None, mode="scalar"):

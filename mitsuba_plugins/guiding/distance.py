@@ -30,7 +30,6 @@ import numpy as np
 
 from mitsuba_plugins.guiding.field import grid_box, grid_cell
 from mitsuba_plugins.tracking import equiangular
-from mitsuba_plugins.tracking.trackers import medium_interaction
 
 #: cells per axis of the light grid
 RESOLUTION = 16
@@ -193,8 +192,11 @@ class Segment:
             top = dr.maximum(top, d)
         # nothing learnt along the segment: the exponential truncated to it
         self.D = [dr.select(top > 0, dr.maximum(d, DEFENSIVE * top), 1.0) for d in D]
-        decay = [dr.exp(-sigma * self.h * k) for k in range(PIECES)] + \
-            [dr.exp(-sigma * t_end)]
+        # exp(-sigma h k) as powers of one exponential (one exp per segment, not PIECES)
+        step, decay = dr.exp(-sigma * self.h), [mi.Float(1.0)]
+        for _ in range(1, PIECES):
+            decay.append(decay[-1] * step)
+        decay.append(dr.exp(-sigma * t_end))
         self.mass = [d * (a - b) for d, a, b in zip(self.D, decay[:-1], decay[1:])]
         total = self.mass[0]
         for m in self.mass[1:]:
@@ -263,7 +265,7 @@ class Point:
         return self.valid & (self.always | scattered)
 
 
-def plan(ctx, grid: LightGrid, ray: mi.Ray3f, medium: mi.MediumPtr, si, eligible: mi.Bool,
+def plan(grid: LightGrid, ray: mi.Ray3f, coefficients, si, eligible: mi.Bool,
          u: mi.Float) -> Point:
     """Draw the guided point of the segment ``[0, si.t]`` on the ``eligible`` lanes
     (homogeneous media of gray extinction). Its emitter sample stands for the segment's
@@ -271,10 +273,9 @@ def plan(ctx, grid: LightGrid, ray: mi.Ray3f, medium: mi.MediumPtr, si, eligible
     surface): then on every lane, with weight ``sigma_s exp(-sigma t) / p(t)``. Where it
     ends at such a surface (whose own emitter sample takes the iteration's shadow ray),
     on the lanes whose flight collided, divided by the collision's probability ``1 -
-    exp(-sigma t_end)``. Either way its expectation is the segment's next-event term."""
-    mei = medium_interaction(ray, mi.Float(0.0))
-    mei.medium = medium
-    sigma_s, _, sigma = medium.get_scattering_coefficients(mei, eligible)
+    exp(-sigma t_end)``. Either way its expectation is the segment's next-event term.
+    ``coefficients``: the medium's ``(sigma_s, sigma_t)``, as the flight read them."""
+    sigma_s, sigma = coefficients
     sigma = mi.Spectrum(sigma)[0]
     t_end = si.t
     seg = Segment(grid, ray, t_end, sigma, eligible)
