@@ -82,49 +82,38 @@ def worthwhile(media: list, bbox, resolution: int = RESOLUTION) -> bool:
 
 def lamps(scene: mi.Scene, bbox) -> list:
     """Positions of the small lights that sit inside a medium (host side, once per
-    render): point and spot lights, and emitting shapes smaller than :data:`SMALL_LAMP` of
-    ``bbox``, whose centre a ray leaving in +x finds inside the interior of a shape that
-    bounds a medium. Near such a light the once-scattered light grows as the inverse
-    squared distance, which no grid of the media's size resolves; the guided density then
-    also draws toward it (equiangular). Empty where there are more than :data:`MAX_LAMPS`."""
+    render, no kernel launched): point and spot lights, and emitting shapes smaller than
+    :data:`SMALL_LAMP` of ``bbox``, whose centre lies in the bounds of a shape with an
+    interior medium (anywhere, where the only medium is the camera's). Near such a light
+    the once-scattered light grows as the inverse squared distance, which no grid of the
+    media's size resolves; the guided density then also draws toward it (equiangular).
+    Bounds, not the shape itself: a lamp in a corner of a ball's bounds only costs samples
+    (the estimate is unbiased for any positions). Empty where there are more than
+    :data:`MAX_LAMPS`."""
     small = SMALL_LAMP * float(np.min(np.array(bbox.max) - np.array(bbox.min)))
+    media = [s.bbox() for s in scene.shapes()
+             if s.interior_medium() is not None and not s.is_emitter()]
+    # a medium bounded by no shape (the camera's, reaching everywhere): anywhere
+    anywhere = not media and any(s.get_medium() is not None for s in scene.sensors())
     found = []
     for emitter in scene.emitters():
-        if mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition):
-            it = dr.zeros(mi.Interaction3f)
-            ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
-            p = np.array(ds.p).ravel()
+        params = mi.traverse(emitter)
+        if "position" in params.keys():                    # point light
+            p = np.array(params["position"], np.float64).ravel()
+        elif mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition) and \
+                "to_world" in params.keys():                # spot light
+            p = np.array(params["to_world"].matrix, np.float64).reshape(-1, 4, 4)[0, :3, 3]
         elif emitter.get_shape() is not None and emitter.get_shape().bbox().valid():
             box = emitter.get_shape().bbox()
             if float(np.max(np.array(box.max) - np.array(box.min))) >= small:
                 continue
-            p = np.array(box.center()).ravel()
+            p = np.array(box.center(), np.float64).ravel()
         else:
             continue
-        if _inside_medium(scene, p):
+        if anywhere or any(bool(b.contains(mi.ScalarPoint3f(*[float(x) for x in p])))
+                           for b in media):
             found.append([float(x) for x in p])
     return found if len(found) <= MAX_LAMPS else []
-
-
-def _inside_medium(scene: mi.Scene, p) -> bool:
-    """Whether a ray from ``p`` in +x first leaves a shape that bounds an interior medium
-    (emitting shapes and shapes without media are passed through)."""
-    ray = mi.Ray3f(mi.Point3f(*[float(x) for x in p]), mi.Vector3f(1.0, 0.0, 0.0))
-    for _ in range(16):
-        si = scene.ray_intersect(ray)
-        if not bool(dr.all(si.is_valid())):
-            return False
-        shape = si.shape
-        leaving = bool((dr.dot(si.n, ray.d) > 0)[0])
-        for s in scene.shapes():
-            if bool(dr.all(mi.ShapePtr(s) == shape)):
-                if s.interior_medium() is not None and leaving and not s.is_emitter():
-                    return True
-                if s.exterior_medium() is not None and not leaving and not s.is_emitter():
-                    return True
-                break
-        ray = si.spawn_ray(ray.d)
-    return False
 
 
 def learning(guide) -> bool:
