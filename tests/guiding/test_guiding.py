@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -21,6 +22,16 @@ from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import GuidingField, media_bounds
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fresh_kernels_after():
+    """Drop this module's compiled kernels when it ends. Dr.Jit 1.5's LLVM backend can
+    abort a later kernel of the same process with "invalid redefinition of function"
+    depending on what the process compiled before (docs/validation.md): the guided
+    renders' kernels did that to a gradient test of the spectral and mono suites."""
+    yield
+    dr.flush_kernel_cache()
 
 
 def _field_with_lobe(mu, r, records=1000):
