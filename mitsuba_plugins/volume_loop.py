@@ -247,13 +247,15 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
                                                   integrator.shadow_roulette, eq_lanes)
             L += L_eq
             valid_ray |= dr.any(L_eq != 0)
+        bsdf = si.bsdf(ray)                 # the surface the segment ends at, if any
+        smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         if dr.hint(gd, mode="scalar"):
             # the segment's emitter sample at a point drawn toward where the learnt
             # once-scattered light is (guiding.distance), not at its free-flight vertex
             gd_lanes = active & (medium != None) & medium.is_homogeneous() \
                 & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
-            gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], si, gd_lanes,
-                                     sampler.next_1d(gd_lanes))
+            gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], si.t, smooth,
+                                     gd_lanes, sampler.next_1d(gd_lanes))
             gd_beta = beta * gd_point.factor
         if dr.hint(empty is not None, mode="scalar"):
             empty = empty.consider(replay, media, medium, ray,
@@ -286,7 +288,6 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
         # --------------------- the vertex: scatter or surface ---------------------
         on_surface = surface & si.is_valid()
-        bsdf = si.bsdf(ray)
         phase = medium.phase_function()
         ref = mi.Interaction3f(dr.select(scattered, t_s, si.t), ray.time, ray.wavelengths,
                                dr.select(scattered, mei.p, si.p),
@@ -295,7 +296,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
         # ------------------------ emitter sampling ------------------------
         nee_medium = scattered & medium.use_emitter_sampling()
-        nee_surface = on_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        nee_surface = on_surface & smooth
         active_em = active_next & (nee_medium | nee_surface)
         nee_ref, nee_beta, at_point = ref, beta, mi.Bool(False)
         if dr.hint(gd, mode="scalar"):   # the segment's guided point samples instead

@@ -254,23 +254,23 @@ class Point:
         return self.valid & (self.always | scattered)
 
 
-def plan(grid: LightGrid, ray: mi.Ray3f, coefficients, si, eligible: mi.Bool,
-         u: mi.Float) -> Point:
-    """Draw the guided point of the segment ``[0, si.t]`` on the ``eligible`` lanes
+def plan(grid: LightGrid, ray: mi.Ray3f, coefficients, t_end: mi.Float, smooth_end: mi.Bool,
+         eligible: mi.Bool, u: mi.Float) -> Point:
+    """Draw the guided point of the segment ``[0, t_end]`` on the ``eligible`` lanes
     (homogeneous media of gray extinction). Its emitter sample stands for the segment's
     where the segment ends at no surface that samples emitters (nothing, or a null
     surface): then on every lane, with weight ``sigma_s exp(-sigma t) / p(t)``. Where it
     ends at such a surface (whose own emitter sample takes the iteration's shadow ray),
     on the lanes whose flight collided, divided by the collision's probability ``1 -
     exp(-sigma t_end)``. Either way its expectation is the segment's next-event term.
-    ``coefficients``: the medium's ``(sigma_s, sigma_t)``, as the flight read them."""
+    ``coefficients``: the medium's ``(sigma_s, sigma_t)``, as the flight read them;
+    ``smooth_end``: whether the segment ends at a surface that samples emitters."""
     sigma_s, sigma = coefficients
     sigma = mi.Spectrum(sigma)[0]
-    t_end = si.t
     seg = Segment(grid, ray, t_end, sigma, eligible)
     t = seg.sample(u)
     p_g = seg.pdf(t)
-    always = ~(si.is_valid() & mi.has_flag(si.bsdf(ray).flags(), mi.BSDFFlags.Smooth))
+    always = ~smooth_end
     collide = 1.0 - dr.exp(-sigma * t_end)
     valid = seg.valid & (p_g > 0) & (always | (collide > 0))
     factor = mi.Spectrum(sigma_s) * dr.exp(-sigma * t) / (p_g * dr.select(always, 1.0, collide))
