@@ -16,9 +16,11 @@ test set reports them.
   chromatic ball under an environment.
 
 ``python3 -m benchmarks.guiding [--set tuning|test|both] [--configs a,b]`` writes
-``benchmarks/results/guiding.{md,json}``; ``--surfaces --out
+``benchmarks/results/guiding.{md,json}``; ``--surfaces --spp 256 --out
 benchmarks/results/guiding_surfaces``: ``path_rr`` with and without ``guiding =
-surfaces`` against ``path`` on a room lit through a slit and the Cornell box; ``--picture`` draws the field learnt in the
+surfaces`` against ``path`` (tuning: a room lit only by light bounced outside through a
+hole; test: a room lit the same way through a door, a room lit through a slit, the Cornell
+box); ``--picture`` draws the field learnt in the
 dense ball, ``docs/results/guiding_field.png``; ``--ceiling --out
 benchmarks/results/guiding_ceiling``: what directional guiding could give with a field
 learnt long beforehand (a 2048-spp training render, then frozen), at equal sample count.
@@ -47,7 +49,7 @@ CONFIGS = {
     "guided_t50": {"type": "volpath_delta", "guiding": "volumes", "guiding_training": 0.5},
     # roulette by the learnt radiance (guiding_roulette; 0: directions only, as before)
     **{f"guided_rr{v:g}": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": v}
-       for v in (0.0, 0.1, 1.0)},
+       for v in (0.0, 0.1, 0.3, 1.0)},
     # guided distance sampling for next-event estimation (guiding_distance)
     "guided_nod": {"type": "volpath_delta", "guiding": "volumes", "guiding_distance": False},
     "guided_d_only": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": 0.0,
@@ -56,6 +58,17 @@ CONFIGS = {
     # surfaces (path_rr), against Mitsuba's path
     "path_rr": {"type": "path_rr", "max_depth": 12},
     "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},
+    "path_rr_guided_vmf": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                           "guiding_bins": 0},
+    **{f"path_rr_guided_b{b}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                "guiding_bins": b} for b in (8, 32)},
+    **{f"path_rr_guided_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                  "guiding_fraction": f} for f in (0.2, 0.3, 0.5, 0.7, 0.9)},
+    **{f"path_rr_guided_b{b}_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                       "guiding_bins": b, "guiding_fraction": f}
+       for b in (0, 8, 16) for f in (0.2, 0.3, 0.5)},
+    "path_rr_guided_t50": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                           "guiding_training": 0.5},
 }
 
 
@@ -76,6 +89,22 @@ def _rect(center, axis: str, sign: int, size, bsdf=None, emitter=None) -> dict:
     return d
 
 
+def _room_with_hole(h: float, white: dict) -> dict:
+    """The walls of a closed 2 x 2 x 2 room with a square hole of side ``2 h`` in the middle
+    of its wall at x = 1."""
+    return {
+        "floor": _rect([0, -1, 0], "y", 1, (2, 2), white),
+        "ceiling": _rect([0, 1, 0], "y", -1, (2, 2), white),
+        "back": _rect([-1, 0, 0], "x", 1, (2, 2), white),
+        "left": _rect([0, 0, -1], "z", 1, (2, 2), white),
+        "right": _rect([0, 0, 1], "z", -1, (2, 2), white),
+        "wall_top": _rect([1, (1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
+        "wall_bottom": _rect([1, -(1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
+        "wall_left": _rect([1, 0, -(1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
+        "wall_right": _rect([1, 0, (1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
+    }
+
+
 def gap_room(res: int) -> mi.Scene:
     """A closed room of white walls filled with fog (sigma_t 0.5, albedo 0.9), lit only
     through a 0.4-wide hole in one wall by an area light outside; the camera in the fog."""
@@ -87,15 +116,7 @@ def gap_room(res: int) -> mi.Scene:
         "type": "scene", "sensor": sensor,
         "fog": {"type": "cube", "to_world": mi.ScalarTransform4f().scale(0.98),
                 "bsdf": {"type": "null"}, "interior": fog},
-        "floor": _rect([0, -1, 0], "y", 1, (2, 2), white),
-        "ceiling": _rect([0, 1, 0], "y", -1, (2, 2), white),
-        "back": _rect([-1, 0, 0], "x", 1, (2, 2), white),
-        "left": _rect([0, 0, -1], "z", 1, (2, 2), white),
-        "right": _rect([0, 0, 1], "z", -1, (2, 2), white),
-        "wall_top": _rect([1, (1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
-        "wall_bottom": _rect([1, -(1 + h) / 2, 0], "x", -1, (2, 1 - h), white),
-        "wall_left": _rect([1, 0, -(1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
-        "wall_right": _rect([1, 0, (1 + h) / 2], "x", -1, (1 - h, 2 * h), white),
+        **_room_with_hole(h, white),
         "light": _rect([1.6, 0, 0], "x", -1, (0.8, 0.8),
                        emitter={"type": "area", "radiance": {"type": "rgb", "value": 40.0}}),
     })
@@ -118,6 +139,47 @@ def slit_room(res: int) -> mi.Scene:
         "outside_floor": _rect([1.5, -1, 0], "y", 1, (1.0, 2.0), white),
         "light": _rect([1.5, 1.3, 0], "y", -1, (1.0, 2.0),
                        emitter={"type": "area", "radiance": {"type": "rgb", "value": 20.0}}),
+    })
+
+
+def bounce_room(res: int) -> mi.Scene:
+    """A closed white room with a 0.4 x 0.4 hole in one wall; outside it a light faces
+    away from the room onto a white wall: every path that brings light in passes the
+    hole and bounces once outside (surfaces, tuning set)."""
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}
+    h = 0.2
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": camera(res, origin=(-0.8, 0.0, 0.0), target=(1.0, 0.0, 0.0), fov=70.0),
+        **_room_with_hole(h, white),
+        "outside": _rect([2.4, 0, 0], "x", -1, (3, 3), white),
+        "light": _rect([1.6, 0, 0], "x", 1, (0.6, 0.6),
+                       emitter={"type": "area", "radiance": {"type": "rgb", "value": 400.0}}),
+    })
+
+
+def door_room(res: int) -> mi.Scene:
+    """A closed white room with a door (0.4 wide, 1.2 high, from the floor) in one side
+    wall; outside, a light on the floor faces up at a white ceiling, off to the door's
+    side, so no point of the room sees it; the camera looks away from the door
+    (surfaces, test set)."""
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": camera(res, origin=(0.8, 0.2, 0.6), target=(-1.0, -0.3, -0.4), fov=70.0),
+        "floor": _rect([0, -1, 0], "y", 1, (2, 2), white),
+        "ceiling": _rect([0, 1, 0], "y", -1, (2, 2), white),
+        "back": _rect([-1, 0, 0], "x", 1, (2, 2), white),
+        "front": _rect([1, 0, 0], "x", -1, (2, 2), white),
+        "left": _rect([0, 0, -1], "z", 1, (2, 2), white),
+        "right_a": _rect([-0.6, 0, 1], "z", -1, (0.8, 2), white),
+        "right_b": _rect([0.6, 0, 1], "z", -1, (0.8, 2), white),
+        "right_c": _rect([0, 0.6, 1], "z", -1, (0.4, 0.8), white),
+        "out_floor": _rect([0, -1, 1.8], "y", 1, (4, 1.6), white),
+        "out_ceiling": _rect([0, 1, 1.8], "y", -1, (4, 1.6), white),
+        "out_wall": _rect([0, 0, 2.6], "z", -1, (4, 2), white),
+        "light": _rect([1.2, -0.99, 1.8], "y", 1, (0.5, 0.5),
+                       emitter={"type": "area", "radiance": {"type": "rgb", "value": 40.0}}),
     })
 
 
@@ -150,11 +212,15 @@ SCENES = {
     "chromatic_dense": ("test", lambda res: media_scene(
         homogeneous([8.0, 16.0, 30.0], albedo=0.95, g=0.3), sensor=camera(res), env=0.5)),
 }
-#: surfaces (``--surfaces``): path_rr against Mitsuba's path
+#: surfaces (``--surfaces``): path_rr against Mitsuba's path. The tuning scene chose
+#: ``guiding_bins``, ``guiding_fraction`` and ``guiding_training``; ``slit_room`` and the
+#: Cornell box were the scenes the lobes were first measured on.
 SURFACE_SCENES = {
-    "slit_room": slit_room,
-    "cornell_box": lambda res: mi.load_file(str(ROOT / "scenes" / "cornell_box.xml"),
-                                            res=str(res)),
+    "bounce_room": ("tuning", bounce_room),
+    "door_room": ("test", door_room),
+    "slit_room": ("test", slit_room),
+    "cornell_box": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "cornell_box.xml"),
+                                                     res=str(res))),
 }
 
 
@@ -333,7 +399,7 @@ def main() -> None:
     if args.picture:
         picture(ROOT / "docs" / "results" / "guiding_field.png")
         return
-    if args.surfaces:
+    if args.surfaces and args.configs == "off,guided":
         args.configs = "path_rr,path_rr_guided"
     configs = {k: CONFIGS[k] for k in args.configs.split(",")}
     result = {"date": datetime.date.today().isoformat(), "cpu": device_model(dense.VARIANT),
@@ -342,10 +408,9 @@ def main() -> None:
                          "ref_spp": args.ref_spp, "configs": list(configs),
                          "argv": " ".join(sys.argv[1:])}}
     out = Path(args.out)
-    scenes = {k: ("surfaces", v) for k, v in SURFACE_SCENES.items()} if args.surfaces \
-        else SCENES
+    scenes = SURFACE_SCENES if args.surfaces else SCENES
     for name, (which, make) in scenes.items():
-        if not args.surfaces and args.set not in ("both", which):
+        if args.set not in ("both", which):
             continue
         scene = make(args.res)
         if args.surfaces:

@@ -4,6 +4,10 @@ from __future__ import annotations
 import mitsuba as mi
 
 from mitsuba_plugins import guided_render
+from mitsuba_plugins.guiding.field import BINS, HistogramField
+
+#: default guiding_fraction, chosen on the tuning room (docs/benchmarks.md)
+FRACTION = 0.2
 from mitsuba_plugins.path_loop import PathIntegrator
 from mitsuba_plugins.path_vertex import EMITTER_SELECTIONS, RR_RULES, RussianRoulette
 from mitsuba_plugins.validity import refuse_gradients
@@ -50,11 +54,11 @@ class PathRR(PathIntegrator):
        - Path guiding at surfaces (docs/method.md section 13): ``off``, or ``surfaces``:
          at surfaces without delta or transmissive lobes, directions from a one-sample MIS
          mixture of the BSDF and a field learnt during the render (a grid of cells, one
-         von Mises-Fisher lobe each), within one ``mi.render`` call. (Default: ``off``)
+         directional histogram each), within one ``mi.render`` call. (Default: ``off``)
      * - guiding_fraction
        - |float|
-       - Probability of sampling the learnt lobe where a cell has one, in [0, 0.9].
-         (Default: 0.5)
+       - Probability of sampling the learnt distribution where a cell has one, in
+         [0, 0.9]. (Default: 0.2)
      * - guiding_training
        - |float|
        - Largest share of the samples spent in training passes, in [0, 0.9].
@@ -63,6 +67,10 @@ class PathRR(PathIntegrator):
        - |int|
        - Cells per axis of the guiding field over the scene's bounds, in [1, 32].
          (Default: 8)
+     * - guiding_bins
+       - |int|
+       - Directions per cell: a histogram of ``guiding_bins``^2 equal-area bins over the
+         sphere, in [0, 64]; 0: one von Mises-Fisher lobe per cell. (Default: 16)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)
@@ -86,7 +94,8 @@ class PathRR(PathIntegrator):
 
     NAME = "path_rr"
     PARAMETERS = ("rr_rule", "rr_survival", "rr_min_survival", "emitter_selection",
-                  "guiding", "guiding_fraction", "guiding_training", "guiding_resolution")
+                  "guiding", "guiding_fraction", "guiding_training", "guiding_resolution",
+                  "guiding_bins")
 
     def configure(self, p):
         self.rr = RussianRoulette(
@@ -97,7 +106,10 @@ class PathRR(PathIntegrator):
             max_survival=self.rr.max_survival)
         self.emitter_selection = p.choice("emitter_selection", "uniform", EMITTER_SELECTIONS)
         guided_render.configure(self, p, ("surfaces",), resolution=8)
-        self.guiding_fraction = p.float("guiding_fraction", 0.5, lo=0.0, hi=0.9)
+        self.guiding_fraction = p.float("guiding_fraction", FRACTION, lo=0.0, hi=0.9)
+        self.guiding_bins = p.int("guiding_bins", BINS, lo=0, hi=64)
+        if self.guiding_bins:
+            HistogramField.check(self.guiding_resolution, self.guiding_bins)
 
     def to_string(self):
         return (f"PathRR[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"

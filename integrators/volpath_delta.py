@@ -117,7 +117,8 @@ class VolpathDelta(VolumetricIntegrator):
        - Roulette by the learnt radiance in guided passes: a path whose throughput times
          the learnt fluence where it scatters falls below this share of what it was at
          its first medium vertex survives with probability (share / this), at least
-         0.05, in [0, 1]; 0: none. (Default: 0.3)
+         0.05, in [0, 1]; 0: none. (Default: 0: since guided passes' roulette follows
+         the unguided throughput it no longer pays, docs/benchmarks.md)
      * - guiding_distance
        - |bool|
        - In guided passes, take each segment's emitter sample in a homogeneous medium of

@@ -21,7 +21,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding import distance
-from mitsuba_plugins.guiding.field import GuidingField, media_bounds, scene_bounds
+from mitsuba_plugins.guiding.field import (GuidingField, HistogramField, media_bounds,
+                                           scene_bounds)
 from mitsuba_plugins.tracking.scene_media import SceneMedia, scene_media
 
 _common = mi.ad.integrators.common
@@ -32,7 +33,7 @@ CANDIDATES = 4
 TRAINING = 0.25
 RESOLUTION = 4
 #: default of volpath_delta's guiding_roulette (guiding.sampling.roulette)
-ROULETTE = 0.3
+ROULETTE = 0.0
 
 
 class GuidedPass:
@@ -98,7 +99,9 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         report.passes = [spp]
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
     bounds = scene_bounds(scene) if surfaces else media_bounds(scene)
-    field = GuidingField(bounds, integrator.guiding_resolution)
+    bins = getattr(integrator, "guiding_bins", 0)
+    field = HistogramField(bounds, integrator.guiding_resolution, bins) if bins else \
+        GuidingField(bounds, integrator.guiding_resolution)
     light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds)) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
         distance.worthwhile(scene_media(scene), bounds) else None

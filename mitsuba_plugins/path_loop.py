@@ -10,7 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.guiding.sampling import Records, mix_surface
+from mitsuba_plugins.guiding.sampling import MAX_GROWTH, Records, mix_surface
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
 from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
@@ -108,6 +108,7 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
+    gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)
     pi = scene.ray_intersect_preliminary(ray, coherent=True, reorder=False, active=active)
 
     if dr.hint(integrator.hide_emitters, mode="scalar"):
@@ -139,9 +140,9 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
             guidable = active_next & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
                 ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
         if dr.hint(guided, mode="scalar"):
-            p_b, bs, bsdf_weight, f_wo = mix_surface(
+            p_b, bs, bsdf_weight, f_wo, g = mix_surface(
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
-                sampler.next_1d(), u2, guidable)
+                sampler.next_1d(), u2, guidable & (gain * MAX_GROWTH >= 1.0))
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(bsdf_weight))) * bs.pdf
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight, wo,
@@ -162,7 +163,10 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
 
         # ------------------------- Russian roulette -------------------------
         depth[si.is_valid()] += 1
-        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d())
+        if dr.hint(guided, mode="scalar"):
+            gain *= g
+        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(),
+                                          gain=gain if guided else None)
 
         # ------------------------------ advance ------------------------------
         active = active_next & alive

@@ -155,12 +155,21 @@ class RussianRoulette:
             s = dr.maximum(s, self.min_survival)
         return s
 
-    def apply(self, beta, eta, depth, u, active=True):
+    def apply(self, beta, eta, depth, u, active=True, gain=None):
         """Returns ``(beta, alive)``; ``u`` is drawn by the caller on every lane
         (Mitsuba draws it whether or not roulette is active). Lanes outside
-        ``active`` play no roulette."""
+        ``active`` play no roulette. ``gain``: where paths were guided, the ratio of the
+        throughput the unguided sampler would have (its own weights ``f / p``) to
+        ``beta``. Survival then follows the larger of the two throughputs: a guided
+        vertex lowers ``beta`` exactly where it chose a direction the field trusts, and
+        survival by ``beta`` alone kills those paths (a firefly when one survives with
+        ``1 / s``); survival by the unguided throughput alone lifts paths whose guided
+        weights exceeded the unguided ones by ``1 / gain``. With the larger of the two,
+        a survivor's ``beta / s`` stays at most 1 in its largest channel, as without
+        guiding (docs/method.md section 13)."""
         beta_max = dr.max(mi.unpolarized_spectrum(beta))
-        s = self.survival_probability(beta_max, eta)
+        s = self.survival_probability(
+            beta_max if gain is None else beta_max * dr.maximum(gain, 1.0), eta)
         rr_active = active & (depth >= self.rr_depth)
         beta[rr_active] *= dr.rcp(s)
         alive = (~rr_active | (u < s)) & (beta_max != 0)

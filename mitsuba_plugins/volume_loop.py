@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding import distance
-from mitsuba_plugins.guiding.sampling import Records, resample, roulette
+from mitsuba_plugins.guiding.sampling import MAX_GROWTH, Records, resample, roulette
 from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
@@ -213,6 +213,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     records = Records() if recording else None       # the field's training records
     steered = guided and guide.roulette > 0           # roulette by the learnt radiance
     rr_ref = mi.Float(0.0) if steered else None      # ... the path's score at its first vertex
+    gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)
     empty = empty_scatter.for_replay(replay, media)
     forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
@@ -330,9 +331,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, in_medium)
         wo_phase, phase_weight, phase_pdf_s = phase.sample(phase_ctx, mei, u1, u2, scattered)
         if dr.hint(guided, mode="scalar"):
-            wo_phase, phase_weight, phase_pdf_s, f_wo = resample(
+            wo_phase, phase_weight, phase_pdf_s, f_wo, g = resample(
                 guide.field, phase, phase_ctx, mei, sampler, guide.candidates,
-                (wo_phase, phase_weight, phase_pdf_s), scattered)
+                (wo_phase, phase_weight, phase_pdf_s),
+                scattered & (gain * MAX_GROWTH >= 1.0))
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
         f_l = dr.select(in_medium, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
@@ -386,10 +388,13 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         count("medium_vertices", scattered)
         count("surface_vertices", on_surface & ~null)
         count("shadow_rays", active_em)
-        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real)
+        if dr.hint(guided, mode="scalar"):
+            gain[scattered] *= g
+        beta, alive = integrator.rr.apply(beta, eta, depth, sampler.next_1d(), real,
+                                          gain=gain if guided else None)
         if dr.hint(steered, mode="scalar"):
             rr_ref, beta, kept = roulette(guide.field, guide.roulette, rr_ref, mei.p, beta,
-                                          sampler.next_1d(), scattered & alive)
+                                          sampler.next_1d(), scattered & alive, gain)
             alive &= kept
 
         # ------------------------------ advance ------------------------------

@@ -23,8 +23,11 @@ after the vertex along the sampled direction ``w``, over the density that drew i
 ``W`` and that times ``w`` to ``V``: unbiased estimates of ``int Li`` and ``int Li w``.
 Cells with fewer than ``MIN_RECORDS`` records stay uniform.
 
+Surfaces (``path_rr``) use :class:`HistogramField` instead: a surface path's weights do
+not compound over tens of vertices, so there the histogram's resolution is worth its noise.
+
 Every pdf is exact: :meth:`GuidingField.pdf` is the density of :meth:`GuidingField.sample`
-(tests/guiding/test_guiding.py checks it against a histogram of its own samples).
+(tests/guiding/test_guiding.py checks both classes against histograms of their own samples).
 """
 from __future__ import annotations
 
@@ -46,6 +49,14 @@ MAX_COSINE = 0.9
 FLAT = 1e-3
 #: largest memory the tables of a field may take (bytes): 64 MiB
 MAX_BYTES = 64 << 20
+
+
+def field_bytes(resolution: int, bins: int = 0) -> int:
+    """Bytes of a field of ``resolution^3`` cells: per cell a lobe (4 floats), its fluence,
+    5 accumulators and a record count on the device, 5 sums and a count on the host;
+    with ``bins`` (:class:`HistogramField`) ``bins^2`` bins of 3 floats on the device
+    (probability, cumulative, accumulator) and a double on the host."""
+    return resolution ** 3 * (4 * 4 + 4 + 5 * 4 + 4 + 5 * 8 + 8 + bins * bins * (3 * 4 + 8))
 
 
 def grid_box(bbox) -> tuple:
@@ -78,9 +89,9 @@ class GuidingField:
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
         if self.memory() > MAX_BYTES:
-            raise ValueError(f"guiding field of {self.cells} cells takes "
-                             f"{self.memory() / 2**20:.0f} MiB; allowed: at most "
-                             f"{MAX_BYTES >> 20} MiB")
+            raise ValueError(f"guiding field of {self.describe()}; allowed: at most "
+                             f"{MAX_BYTES >> 20} MiB (lower guiding_resolution or "
+                             "guiding_bins)")
         self.lo, self.inv_size = grid_box(bbox)
         self.sums = np.zeros((self.cells, 5), np.float64)        # W, Vx, Vy, Vz, N
         self.records = np.zeros(self.cells, np.int64)
@@ -88,7 +99,7 @@ class GuidingField:
 
     def memory(self) -> int:
         """Bytes of the device tables (lobes, accumulators) and the host sums."""
-        return self.cells * (4 * 4 + 4 + 5 * 4 + 4 + 5 * 8 + 8)
+        return field_bytes(self.resolution)
 
     # -- tables ------------------------------------------------------------------------
     def _upload(self, mu: np.ndarray, kappa: np.ndarray, fluence=None) -> None:
@@ -123,6 +134,10 @@ class GuidingField:
         """``(mu, kappa)`` of ``cell``."""
         mu = mi.Vector3f(*[dr.gather(mi.Float, m, cell, active) for m in self.mu])
         return mu, dr.gather(mi.Float, self.kappa, cell, active)
+
+    def trained(self, cell: mi.UInt32, active=True) -> mi.Bool:
+        """Whether ``cell`` has learnt a distribution (enough records, a lobe)."""
+        return dr.gather(mi.Float, self.kappa, cell, active) > 0
 
     def pdf(self, cell: mi.UInt32, d: mi.Vector3f, active=True) -> mi.Float:
         """Solid-angle density of :meth:`sample` in ``cell`` at the unit direction ``d``."""
@@ -201,3 +216,102 @@ def scene_bounds(scene: mi.Scene):
             v = np.array(shape.vertex_positions_buffer()).reshape(-1, 3)
             box.expand(mi.ScalarBoundingBox3f(v.min(axis=0).tolist(), v.max(axis=0).tolist()))
     return box if box.valid() else scene.bbox()
+
+
+#: default bins per axis of :class:`HistogramField`'s directional histograms (path_rr's
+#: ``guiding_bins``)
+BINS = 16
+
+
+class HistogramField(GuidingField):
+    """Spatial grid x one directional histogram per cell: ``bins x bins`` equal-area bins
+    over the sphere (``z = cos theta`` and ``phi`` in equal steps, world axes: each bin
+    covers ``4 pi / bins^2`` sr), mixed with the uniform distribution as the lobes are.
+    Sampling picks a bin by its cell's cumulative table (``dr.binary_search``) and a
+    point uniformly in it, so the density is the bin's probability over its solid angle:
+    exact. Bin ``b`` of a cell learns the sum of its records' ``Li / p``, an unbiased
+    estimate of the radiance integrated over the bin. The lobe's moments are still
+    fitted (they say which cells are trained, and the fluence).
+
+    Why for surfaces: where light arrives through a narrow opening one lobe per cell is
+    too broad (mean cosines 0.2-0.5 in a room lit through a slit). A surface path's
+    weights do not compound over tens of vertices as a medium's do, so the histogram's
+    resolution is worth its noise there (measured: docs/benchmarks.md); in media it is
+    not (module docstring)."""
+
+    def __init__(self, bbox, resolution: int = RESOLUTION, bins: int = BINS):
+        self.bins = int(bins)
+        self.size = self.bins * self.bins
+        self.hist = None
+        super().__init__(bbox, resolution)
+        self.hist = np.zeros((self.cells, self.size), np.float64)
+
+    def memory(self) -> int:
+        return field_bytes(self.resolution, self.bins)
+
+    @staticmethod
+    def check(resolution: int, bins: int) -> None:
+        """Refuse, when a plugin loads, parameters whose field would pass the cap."""
+        total = field_bytes(resolution, bins)
+        if total > MAX_BYTES:
+            raise ValueError(
+                f"guiding_resolution = {resolution} and guiding_bins = {bins}: the field "
+                f"would take {total / 2**20:.0f} MiB; allowed: at most {MAX_BYTES >> 20} MiB "
+                "(about resolution^3 x bins^2 x 20 bytes)")
+
+    def _upload(self, mu, kappa, fluence=None) -> None:
+        super()._upload(mu, kappa, fluence)
+        prob = np.full((self.cells, self.size), 1.0 / self.size)
+        if self.hist is not None:
+            total = self.hist.sum(axis=1, keepdims=True)
+            trained = (kappa > 0)[:, None] & (total > 0)
+            learnt = (1.0 - UNIFORM) * self.hist / np.where(total > 0, total, 1.0) + \
+                UNIFORM / self.size
+            prob = np.where(trained, learnt, prob)
+        cdf = np.cumsum(prob, axis=1)
+        cdf[:, -1] = 1.0
+        self.prob = mi.Float(prob.ravel().astype(np.float32))
+        self.cdf = mi.Float(cdf.ravel().astype(np.float32))
+        self.acc_hist = dr.zeros(mi.Float, self.cells * self.size)
+        dr.eval(self.prob, self.cdf, self.acc_hist)
+
+    def update(self) -> int:
+        self.hist += np.array(self.acc_hist, np.float64).reshape(self.cells, self.size)
+        return super().update()
+
+    def _bin(self, d: mi.Vector3f) -> mi.UInt32:
+        n = self.bins
+        iz = dr.clip(mi.Int32(dr.floor((d.z + 1.0) * (0.5 * n))), 0, n - 1)
+        phi = dr.atan2(d.y, d.x)
+        phi = dr.select(phi < 0, phi + 2 * math.pi, phi)
+        ip = dr.clip(mi.Int32(dr.floor(phi * (n / (2 * math.pi)))), 0, n - 1)
+        return mi.UInt32(iz * n + ip)
+
+    def pdf(self, cell, d, active=True) -> mi.Float:
+        p = dr.gather(mi.Float, self.prob, cell * self.size + self._bin(d), active)
+        return p * (self.size / (4 * math.pi))
+
+    def sample(self, cell, u: mi.Point2f, active=True) -> mi.Vector3f:
+        """A direction: ``u.x`` chooses the bin and is reused for ``z`` within it,
+        ``u.y`` gives ``phi`` within it."""
+        base = cell * self.size
+        b = dr.binary_search(0, self.size - 1, lambda i: dr.gather(
+            mi.Float, self.cdf, base + i, active) < u.x)
+        hi = dr.gather(mi.Float, self.cdf, base + b, active)
+        p = dr.gather(mi.Float, self.prob, base + b, active)
+        x = dr.clip(1.0 - (hi - u.x) / dr.maximum(p, 1e-30), 0.0, 0.99999)
+        n = self.bins
+        z = dr.clip((mi.Float(b // n) + x) * (2.0 / n) - 1.0, -1.0, 1.0)
+        phi = (mi.Float(b % n) + dr.clip(u.y, 0.0, 0.99999)) * (2 * math.pi / n)
+        s = dr.safe_sqrt(1.0 - z * z)
+        return mi.Vector3f(s * dr.cos(phi), s * dr.sin(phi), z)
+
+    def record(self, cell, d, value, active, weight=1.0) -> None:
+        super().record(cell, d, value, active, weight)
+        ok = active & dr.isfinite(value) & (value >= 0)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc_hist, value,
+                          cell * self.size + self._bin(d), ok)
+
+    def describe(self) -> str:
+        return (f"{self.resolution}^3 cells x {self.bins}x{self.bins} directional bins, "
+                f"{self.memory() / 2**20:.2f} MiB")

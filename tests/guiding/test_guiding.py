@@ -19,7 +19,7 @@ from helpers import (assert_mean_equals, assert_same_expectation, cached_estimat
                      homogeneous, load, loaded, media_scene, render)
 from mitsuba_plugins.guiding import distance
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
-from mitsuba_plugins.guiding.field import GuidingField, media_bounds
+from mitsuba_plugins.guiding.field import GuidingField, HistogramField, media_bounds
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
 
@@ -51,27 +51,73 @@ def _field_with_lobe(mu, r, records=1000):
 def test_field_pdf_is_the_density_of_its_samples(r):
     """Chi-square test (alpha 1e-3) of 2^20 samples over 8 x 16 equal-area bins against the
     pdf integrated over each bin (16 x 16 midpoints per bin); the pdf integrates to 1."""
-    field = _field_with_lobe([0.3, -0.5, 0.8], r)
-    n = 1 << 20
-    rng = np.random.default_rng(7)
-    u = mi.Point2f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(2)))
-    d = np.array(field.sample(mi.UInt32(0), u)).reshape(3, -1)
-    assert np.allclose(np.linalg.norm(d, axis=0), 1.0, atol=1e-5)
-    nz, nphi = 8, 16
-    phi = np.mod(np.arctan2(d[1], d[0]), 2 * np.pi)
-    bins = np.minimum(((d[2] + 1) / 2 * nz).astype(int), nz - 1) * nphi + \
-        np.minimum((phi / (2 * np.pi) * nphi).astype(int), nphi - 1)
-    observed = np.bincount(bins, minlength=nz * nphi)
-    m = 16                                      # midpoints per bin and axis
+    _assert_density_of_samples(_field_with_lobe([0.3, -0.5, 0.8], r))
+
+
+@pytest.mark.parametrize("bins", [1, 5, 16])
+def test_histogram_pdf_is_the_density_of_its_samples(bins):
+    """The same test for a directional histogram (``path_rr``'s ``guiding_bins``) of
+    random bin weights, a fifth of them 0 (the uniform share keeps every bin's density
+    above 0); the test's 8 x 16 bins do not line up with the histogram's."""
+    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2,
+                           bins=bins)
+    rng = np.random.default_rng(bins)
+    weights = rng.gamma(0.5, size=(field.cells, field.size)) * \
+        (rng.random((field.cells, field.size)) > 0.2)
+    field.acc_hist = mi.Float(weights.ravel().astype(np.float32))
+    field.acc = [mi.Float(np.full(field.cells, v, np.float32)) for v in (1, 0.3, 0, 0, 100)]
+    field.acc_records = mi.UInt32(np.full(field.cells, 100, np.uint32))
+    assert field.update() == field.cells
+    _assert_density_of_samples(field, cell=3, mass=_histogram_mass)
+
+
+def _histogram_mass(field, cell, nz, nphi):
+    """The exact probability of each of the test's ``nz x nphi`` (z, phi) bins under a
+    histogram field's pdf, evaluated at its bins' centres: the density is constant on
+    each of its bins, and solid angle is area in (z, phi)."""
+    n = field.bins
+    zc = -1 + 2 * (np.arange(n) + 0.5) / n
+    pc = 2 * np.pi * (np.arange(n) + 0.5) / n
+    Z, P = np.meshgrid(zc, pc, indexing="ij")
+    s = np.sqrt(1 - Z * Z)
+    dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
+                         (s * np.cos(P), s * np.sin(P), Z)))
+    density = np.array(field.pdf(mi.UInt32(np.full(Z.size, cell, np.uint32)), dirs)).reshape(n, n)
+
+    def overlap(edges_a, edges_b):
+        lo = np.maximum(edges_a[:-1, None], edges_b[None, :-1])
+        hi = np.minimum(edges_a[1:, None], edges_b[None, 1:])
+        return np.clip(hi - lo, 0, None)          # (test bins, histogram bins)
+    oz = overlap(np.linspace(-1, 1, nz + 1), np.linspace(-1, 1, n + 1))
+    op = overlap(np.linspace(0, 2 * np.pi, nphi + 1), np.linspace(0, 2 * np.pi, n + 1))
+    return (oz @ density @ op.T).ravel()
+
+
+def _quadrature_mass(field, cell, nz, nphi):
+    """The pdf integrated over each test bin by 16 x 16 midpoints (smooth pdfs)."""
+    m = 16
     z = -1 + 2 * (np.arange(nz * m) + 0.5) / (nz * m)
     p = 2 * np.pi * (np.arange(nphi * m) + 0.5) / (nphi * m)
     Z, P = np.meshgrid(z, p, indexing="ij")
     s = np.sqrt(1 - Z * Z)
     dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
                          (s * np.cos(P), s * np.sin(P), Z)))
-    pdf = np.array(field.pdf(mi.UInt32(np.zeros(Z.size, np.uint32)), dirs)).reshape(Z.shape)
-    cell_area = 4 * np.pi / Z.size
-    mass = (pdf * cell_area).reshape(nz, m, nphi, m).sum(axis=(1, 3)).ravel()
+    pdf = np.array(field.pdf(mi.UInt32(np.full(Z.size, cell, np.uint32)), dirs)).reshape(Z.shape)
+    return (pdf * 4 * np.pi / Z.size).reshape(nz, m, nphi, m).sum(axis=(1, 3)).ravel()
+
+
+def _assert_density_of_samples(field, cell=0, mass=_quadrature_mass):
+    n = 1 << 20
+    rng = np.random.default_rng(7)
+    u = mi.Point2f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(2)))
+    d = np.array(field.sample(mi.UInt32(cell), u)).reshape(3, -1)
+    assert np.allclose(np.linalg.norm(d, axis=0), 1.0, atol=1e-5)
+    nz, nphi = 8, 16
+    phi = np.mod(np.arctan2(d[1], d[0]), 2 * np.pi)
+    bins = np.minimum(((d[2] + 1) / 2 * nz).astype(int), nz - 1) * nphi + \
+        np.minimum((phi / (2 * np.pi) * nphi).astype(int), nphi - 1)
+    observed = np.bincount(bins, minlength=nz * nphi)
+    mass = mass(field, cell, nz, nphi)
     assert mass.sum() == pytest.approx(1.0, abs=2e-3)
     expected = mass / mass.sum() * n
     chi2 = float(((observed - expected) ** 2 / expected).sum())
@@ -197,14 +243,36 @@ def test_lamps_are_small_lights_inside_a_medium():
     assert scene([0.2, 0.1, 0.0], 0.02, n=distance.MAX_LAMPS + 1) == []
 
 
-def test_guided_surfaces_estimate_the_same_image():
-    """``path_rr`` with ``guiding = surfaces`` against ``path_rr`` on the Cornell box
-    (8 passes of 64 spp against 16 of 64, disjoint seeds, max_depth 8)."""
+@pytest.mark.parametrize("bins", [16, 0])
+def test_guided_surfaces_estimate_the_same_image(bins):
+    """``path_rr`` with ``guiding = surfaces`` (histograms, and one lobe per cell) against
+    ``path_rr`` on the Cornell box (8 passes of 64 spp against 16 of 64, disjoint seeds,
+    max_depth 8: roulette from depth 5 on, so its guided survival is tested too)."""
     key, make = loaded("cornell_box")
-    a = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8, "guiding": "surfaces"},
-                        passes=8, spp=64, seed=2000)
+    a = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8, "guiding": "surfaces",
+                                    "guiding_bins": bins}, passes=8, spp=64, seed=2000)
     b = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8}, passes=16, spp=64)
-    assert_same_expectation(a, b, "guiding-surfaces-cornell_box")
+    assert_same_expectation(a, b, f"guiding-surfaces-cornell_box-bins{bins}")
+
+
+def test_guided_roulette_is_unbiased_and_bounded():
+    """``RussianRoulette.apply`` with a guided path's ``gain``: the mean of the surviving
+    throughput equals the throughput (t-test, alpha 1e-4, 2^20 lanes per case), and a
+    survivor's largest channel stays at most 1 where the throughput was below the
+    largest survival probability, as without guiding."""
+    from mitsuba_plugins.path_vertex import RussianRoulette
+    rr = RussianRoulette(rr_depth=1)
+    n = 1 << 20
+    rng = np.random.default_rng(3)
+    for beta, gain in [(0.02, 20.0), (0.02, 0.05), (0.3, 1.0), (0.9, 3.0)]:
+        b = mi.Spectrum(beta)
+        out, alive = rr.apply(b, mi.Float(1.0), mi.UInt32(np.full(n, 2, np.uint32)),
+                              mi.Float(rng.random(n).astype(np.float32)),
+                              gain=mi.Float(np.full(n, gain, np.float32)))
+        kept = np.where(np.array(alive), np.array(out)[0], 0.0)
+        t = (kept.mean() - beta) / (kept.std(ddof=1) / np.sqrt(n))
+        assert abs(t) < scipy_stats.norm.isf(0.5e-4), (beta, gain, kept.mean())
+        assert kept.max() <= max(1.0, beta / rr.max_survival) * (1 + 1e-5), (beta, gain)
 
 
 def test_guided_open_furnace():
@@ -262,6 +330,7 @@ def test_bad_guiding_parameters_are_refused(name, value, bound):
 @pytest.mark.parametrize("name, value, bound", [
     ("guiding", "volumes", "off | surfaces"),
     ("guiding_fraction", 0.95, "<= 0.9"),
+    ("guiding_bins", 65, "[0, 64]"),
 ])
 def test_bad_surface_guiding_parameters_are_refused(name, value, bound):
     with pytest.raises(Exception) as info:
@@ -271,8 +340,14 @@ def test_bad_surface_guiding_parameters_are_refused(name, value, bound):
 
 
 def test_memory_is_bounded_and_reported():
-    """The largest field allowed (32^3 cells) stays under the 64 MiB cap."""
+    """The largest field of lobes allowed (32^3 cells) stays under the 64 MiB cap; the
+    histograms' size is checked when the plugin loads, naming both parameters."""
     field = GuidingField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=32)
     assert field.memory() < 64 << 20
     assert math.isclose(field.memory() / 2**20, float(field.describe().split(", ")[1].split()[0]),
                         rel_tol=0.01)
+    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=8)
+    assert math.isclose(field.memory() / 2**20, float(field.describe().split(", ")[1].split()[0]),
+                        rel_tol=0.01)
+    with pytest.raises(Exception, match="guiding_resolution.*guiding_bins.*64 MiB"):
+        mi.load_dict({"type": "path_rr", "guiding": "surfaces", "guiding_resolution": 32})
