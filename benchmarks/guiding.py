@@ -54,7 +54,8 @@ CONFIGS = {
     "guided_nod": {"type": "volpath_delta", "guiding": "volumes", "guiding_distance": False},
     "guided_d_only": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": 0.0,
                       "guiding_candidates": 1},
-    "guided_c1": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 1},
+    **{f"guided_c{c}": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": c}
+       for c in (1, 2)},
     # surfaces (path_rr), against Mitsuba's path
     "path_rr": {"type": "path_rr", "max_depth": 12},
     "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},

@@ -246,11 +246,14 @@ def test_lamps_are_small_lights_inside_a_medium():
 @pytest.mark.parametrize("bins", [16, 0])
 def test_guided_surfaces_estimate_the_same_image(bins):
     """``path_rr`` with ``guiding = surfaces`` (histograms, and one lobe per cell) against
-    ``path_rr`` on the Cornell box (8 passes of 64 spp against 16 of 64, disjoint seeds,
-    max_depth 8: roulette from depth 5 on, so its guided survival is tested too)."""
+    ``path_rr`` on the Cornell box (16 passes of 64 spp each, disjoint seeds, max_depth 8:
+    roulette from depth 5 on, so its guided survival is tested too). 16 guided passes, not
+    8: with 8, the lobes' block means near the light read |z| 3.8-4.4 against a threshold
+    of 4.3 in the mono variant, their sign changing with the seed (heavy tails, not a bias:
+    the image-mean z -1.2 to 0.1)."""
     key, make = loaded("cornell_box")
     a = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8, "guiding": "surfaces",
-                                    "guiding_bins": bins}, passes=8, spp=64, seed=2000)
+                                    "guiding_bins": bins}, passes=16, spp=64, seed=2000)
     b = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8}, passes=16, spp=64)
     assert_same_expectation(a, b, f"guiding-surfaces-cornell_box-bins{bins}")
 
