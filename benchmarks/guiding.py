@@ -46,7 +46,8 @@ CONFIGS = {
     "guided": {"type": "volpath_delta", "guiding": "volumes"},
     "guided_c8": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": 8},
     "guided_r8": {"type": "volpath_delta", "guiding": "volumes", "guiding_resolution": 8},
-    "guided_t50": {"type": "volpath_delta", "guiding": "volumes", "guiding_training": 0.5},
+    **{f"guided_t{round(100 * t)}": {"type": "volpath_delta", "guiding": "volumes",
+                                     "guiding_training": t} for t in (0.125, 0.5)},
     # roulette by the learnt radiance (guiding_roulette; 0: directions only, as before)
     **{f"guided_rr{v:g}": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": v}
        for v in (0.0, 0.1, 0.3, 1.0)},
