@@ -4,13 +4,13 @@ from __future__ import annotations
 import mitsuba as mi
 
 from mitsuba_plugins import guided_render
-from mitsuba_plugins.guiding.field import BINS, HistogramField
-
-#: default guiding_fraction, chosen on the tuning room (docs/benchmarks.md)
-FRACTION = 0.2
+from mitsuba_plugins.guiding.field import BINS, check_memory
 from mitsuba_plugins.path_loop import PathIntegrator
 from mitsuba_plugins.path_vertex import EMITTER_SELECTIONS, RR_RULES, RussianRoulette
 from mitsuba_plugins.validity import refuse_gradients
+
+#: default guiding_fraction, chosen on the tuning room (docs/benchmarks.md)
+FRACTION = 0.2
 
 VARIANT = mi.variant()
 
@@ -108,8 +108,7 @@ class PathRR(PathIntegrator):
         guided_render.configure(self, p, ("surfaces",), resolution=8)
         self.guiding_fraction = p.float("guiding_fraction", FRACTION, lo=0.0, hi=0.9)
         self.guiding_bins = p.int("guiding_bins", BINS, lo=0, hi=64)
-        if self.guiding_bins:
-            HistogramField.check(self.guiding_resolution, self.guiding_bins)
+        check_memory(self.guiding_resolution, self.guiding_bins)
 
     def to_string(self):
         return (f"PathRR[\n  max_depth = {self.max_depth},\n  roulette = {self.rr},\n"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.guiding.sampling import MAX_GROWTH, Records, mix_surface
+from mitsuba_plugins.guiding.sampling import Records, mix_surface, still_guided
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
 from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
@@ -142,7 +142,7 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         if dr.hint(guided, mode="scalar"):
             p_b, bs, bsdf_weight, f_wo, g = mix_surface(
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
-                sampler.next_1d(), u2, guidable & (gain * MAX_GROWTH >= 1.0))
+                sampler.next_1d(), u2, guidable & still_guided(gain))
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(bsdf_weight))) * bs.pdf
         L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight, wo,

@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding import distance
-from mitsuba_plugins.guiding.sampling import MAX_GROWTH, Records, resample, roulette
+from mitsuba_plugins.guiding.sampling import Records, resample, roulette, still_guided
 from mitsuba_plugins.instrument import count, settings
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
@@ -334,7 +334,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             wo_phase, phase_weight, phase_pdf_s, f_wo, g = resample(
                 guide.field, phase, phase_ctx, mei, sampler, guide.candidates,
                 (wo_phase, phase_weight, phase_pdf_s),
-                scattered & (gain * MAX_GROWTH >= 1.0))
+                scattered & still_guided(gain))
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
         f_l = dr.select(in_medium, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))

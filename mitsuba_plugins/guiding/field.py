@@ -59,6 +59,17 @@ def field_bytes(resolution: int, bins: int = 0) -> int:
     return resolution ** 3 * (4 * 4 + 4 + 5 * 4 + 4 + 5 * 8 + 8 + bins * bins * (3 * 4 + 8))
 
 
+def check_memory(resolution: int, bins: int = 0) -> None:
+    """Refuse parameters whose field would pass :data:`MAX_BYTES` (called when a plugin
+    loads, and by every field)."""
+    total = field_bytes(resolution, bins)
+    if total > MAX_BYTES:
+        raise ValueError(
+            f"guiding_resolution = {resolution} and guiding_bins = {bins}: the field "
+            f"would take {total / 2**20:.0f} MiB; allowed: at most {MAX_BYTES >> 20} MiB "
+            "(resolution^3 x (92 + bins^2 x 20) bytes)")
+
+
 def grid_box(bbox) -> tuple:
     """``(lo, 1 / size)`` of a grid over ``bbox`` (padded by 0.1%), as Python floats: an
     mi.Point3f made from a NumPy array inside a symbolic loop read garbage (measured:
@@ -88,10 +99,7 @@ class GuidingField:
     def __init__(self, bbox, resolution: int = RESOLUTION):
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
-        if self.memory() > MAX_BYTES:
-            raise ValueError(f"guiding field of {self.describe()}; allowed: at most "
-                             f"{MAX_BYTES >> 20} MiB (lower guiding_resolution or "
-                             "guiding_bins)")
+        check_memory(self.resolution, getattr(self, "bins", 0))
         self.lo, self.inv_size = grid_box(bbox)
         self.sums = np.zeros((self.cells, 5), np.float64)        # W, Vx, Vy, Vz, N
         self.records = np.zeros(self.cells, np.int64)
@@ -248,16 +256,6 @@ class HistogramField(GuidingField):
 
     def memory(self) -> int:
         return field_bytes(self.resolution, self.bins)
-
-    @staticmethod
-    def check(resolution: int, bins: int) -> None:
-        """Refuse, when a plugin loads, parameters whose field would pass the cap."""
-        total = field_bytes(resolution, bins)
-        if total > MAX_BYTES:
-            raise ValueError(
-                f"guiding_resolution = {resolution} and guiding_bins = {bins}: the field "
-                f"would take {total / 2**20:.0f} MiB; allowed: at most {MAX_BYTES >> 20} MiB "
-                "(about resolution^3 x bins^2 x 20 bytes)")
 
     def _upload(self, mu, kappa, fluence=None) -> None:
         super()._upload(mu, kappa, fluence)

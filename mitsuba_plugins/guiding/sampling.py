@@ -82,6 +82,11 @@ def resample(field, phase, phase_ctx, mei, sampler, candidates: int, first, acti
 #: the path so far without bias: each vertex's estimate stays unbiased given the past.
 MAX_GROWTH = 4.0
 
+
+def still_guided(gain: mi.Float) -> mi.Bool:
+    """The lanes whose next vertex may still be guided (:data:`MAX_GROWTH`)."""
+    return gain * MAX_GROWTH >= 1.0
+
 #: the lowest survival probability of :func:`roulette` (its threshold is volpath_delta's
 #: ``guiding_roulette``, default ``guided_render.ROULETTE``)
 MIN_SURVIVAL = 0.05
