@@ -372,6 +372,7 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--set", choices=("tuning", "test", "both"), default="both")
     ap.add_argument("--configs", default="off,guided")
+    ap.add_argument("--scenes", default="", help="only these scenes (comma-separated)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "guiding"))
     ap.add_argument("--surfaces", action="store_true",
                     help="path_rr with and without guiding against path, on SURFACE_SCENES")
@@ -412,7 +413,8 @@ def main() -> None:
     out = Path(args.out)
     scenes = SURFACE_SCENES if args.surfaces else SCENES
     for name, (which, make) in scenes.items():
-        if args.set not in ("both", which):
+        if args.set not in ("both", which) or \
+                (args.scenes and name not in args.scenes.split(",")):
             continue
         scene = make(args.res)
         if args.surfaces:

@@ -41,10 +41,14 @@ class GuidedPass:
     anything), whether it samples from it and whether it records into it."""
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
-                 fraction: float = 0.0, roulette: float = 0.0, light=None):
+                 fraction: float = 0.0, roulette: float = 0.0, light=None,
+                 symmetric: bool = False):
         self.field, self.sampling, self.recording = field, sampling, recording
         self.candidates, self.fraction, self.roulette = candidates, fraction, roulette
         self.light = light         # guiding.distance.LightGrid, or None
+        # every phase function is symmetric about the incident direction (no microflake):
+        # resampling's candidates may be turned about it (guiding.sampling.resample)
+        self.symmetric = symmetric
 
 
 class _PassRender:
@@ -105,6 +109,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds)) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
         distance.worthwhile(scene_media(scene), bounds) else None
+    symmetric = not any(mi.has_flag(m.phase_function().flags(),
+                                    mi.PhaseFunctionFlags.Microflake) for m in scene_media(scene))
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light
     image, t0 = None, time.perf_counter()
@@ -116,7 +122,7 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                            candidates=getattr(integrator, "guiding_candidates", 1),
                            fraction=getattr(integrator, "guiding_fraction", 0.0),
                            roulette=getattr(integrator, "guiding_roulette", 0.0),
-                           light=light)
+                           light=light, symmetric=symmetric)
         pass_seed = seed if k == 0 else \
             int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)

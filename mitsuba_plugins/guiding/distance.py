@@ -157,6 +157,20 @@ class LightGrid:
     def value(self, p: mi.Point3f, active=True) -> mi.Float:
         return dr.gather(mi.Float, self.mean, self.cell(p), active)
 
+    def values_along(self, ray: mi.Ray3f, h: mi.Float, n: int, active=True) -> list:
+        """:meth:`value` at ``ray((k + 0.5) h)``, ``k = 0 .. n - 1`` (grid coordinates
+        stepped along the ray: the same cells as :meth:`value`'s, up to rounding)."""
+        r = self.resolution
+        scale = mi.Vector3f(*self.inv_size) * r
+        x = (ray(0.5 * h) - mi.Point3f(*self.lo)) * scale
+        step = ray.d * h * scale
+        out = []
+        for k in range(n):
+            i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(dr.fma(step, k, x))), 0, r - 1))
+            out.append(dr.gather(mi.Float, self.mean, mi.UInt32((i.z * r + i.y) * r + i.x),
+                                 active))
+        return out
+
     def record(self, p: mi.Point3f, contribution: mi.Spectrum, active) -> None:
         """One medium point's emitter sample per unit of throughput (0 counts)."""
         value = mi.Float(dr.mean(mi.Spectrum(contribution)))
@@ -175,7 +189,7 @@ class Segment:
                  active):
         self.sigma, self.t_end = sigma, t_end
         self.h = dr.minimum(t_end, MAX_OPTICAL_DEPTH / dr.maximum(sigma, 1e-30)) / PIECES
-        D = [grid.value(ray((k + 0.5) * self.h), active) for k in range(PIECES)]
+        D = grid.values_along(ray, self.h, PIECES, active)
         top = D[0]
         for d in D[1:]:
             top = dr.maximum(top, d)

@@ -111,13 +111,20 @@ class GuidingField:
 
     # -- tables ------------------------------------------------------------------------
     def _upload(self, mu: np.ndarray, kappa: np.ndarray, fluence=None) -> None:
+        # a lobe below FLAT is the uniform distribution (kappa 0); the density's factor
+        # ``(1 - UNIFORM) kappa / (2 pi (1 - exp(-2 kappa)))`` is tabled per cell, so that
+        # a lookup costs one exponential per direction
+        kappa = np.where(kappa < FLAT, 0.0, kappa)
+        k = np.where(kappa > 0, kappa, 1.0)
+        norm = np.where(kappa > 0, k / (2 * math.pi * -np.expm1(-2.0 * k)), 1.0 / (4 * math.pi))
         self.mu = [mi.Float(mu[:, i].astype(np.float32)) for i in range(3)]
         self.kappa = mi.Float(kappa.astype(np.float32))
+        self.norm = mi.Float(((1.0 - UNIFORM) * norm).astype(np.float32))
         self.fluence = mi.Float((np.zeros(self.cells) if fluence is None else fluence)
                                 .astype(np.float32))
         self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(5)]
         self.acc_records = dr.zeros(mi.UInt32, self.cells)
-        dr.eval(*self.mu, self.kappa, self.fluence, *self.acc, self.acc_records)
+        dr.eval(*self.mu, self.kappa, self.norm, self.fluence, *self.acc, self.acc_records)
 
     def update(self) -> int:
         """Fold the records of the last pass into the lobes (host side, between passes);
@@ -149,16 +156,15 @@ class GuidingField:
 
     def pdf(self, cell: mi.UInt32, d: mi.Vector3f, active=True) -> mi.Float:
         """Solid-angle density of :meth:`sample` in ``cell`` at the unit direction ``d``."""
-        mu, kappa = self.lobe(cell, active)
-        return self.density(mu, kappa, d)
+        return self.lookup(cell, active)(d)
 
-    @staticmethod
-    def density(mu, kappa, d) -> mi.Float:
-        flat = kappa < FLAT
-        k = dr.select(flat, 1.0, kappa)
-        vmf = k / (2 * math.pi * (1.0 - dr.exp(-2.0 * k))) * dr.exp(k * (dr.dot(mu, d) - 1.0))
-        vmf = dr.select(flat, 1.0 / (4 * math.pi), vmf)
-        return (1.0 - UNIFORM) * vmf + UNIFORM / (4 * math.pi)
+    def lookup(self, cell: mi.UInt32, active=True):
+        """``cell``'s density as a function of the unit direction: its tables gathered
+        once, for the several directions a vertex weighs."""
+        mu, kappa = self.lobe(cell, active)
+        norm = dr.gather(mi.Float, self.norm, cell, active)
+        return lambda d: dr.fma(norm, dr.exp(kappa * (dr.dot(mu, d) - 1.0)),
+                                UNIFORM / (4 * math.pi))
 
     def sample(self, cell: mi.UInt32, u: mi.Point2f, active=True) -> mi.Vector3f:
         """A direction from ``cell``'s mixture: ``u.x`` chooses uniform or lobe and is
@@ -285,9 +291,10 @@ class HistogramField(GuidingField):
         ip = dr.clip(mi.Int32(dr.floor(phi * (n / (2 * math.pi)))), 0, n - 1)
         return mi.UInt32(iz * n + ip)
 
-    def pdf(self, cell, d, active=True) -> mi.Float:
-        p = dr.gather(mi.Float, self.prob, cell * self.size + self._bin(d), active)
-        return p * (self.size / (4 * math.pi))
+    def lookup(self, cell, active=True):
+        base = cell * self.size
+        return lambda d: dr.gather(mi.Float, self.prob, base + self._bin(d), active) * \
+            (self.size / (4 * math.pi))
 
     def sample(self, cell, u: mi.Point2f, active=True) -> mi.Vector3f:
         """A direction: ``u.x`` chooses the bin and is reused for ``z`` within it,

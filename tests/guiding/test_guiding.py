@@ -17,7 +17,7 @@ from scipy import stats as scipy_stats
 
 from helpers import (assert_mean_equals, assert_same_expectation, cached_estimate, camera, grid,
                      homogeneous, load, loaded, media_scene, render)
-from mitsuba_plugins.guiding import distance
+from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import GuidingField, HistogramField, media_bounds
 
@@ -168,8 +168,33 @@ def _thin_fog():
     return mi.load_dict(scene)
 
 
+def _microflake_fog():
+    """A fog ball whose phase function (SGGX) is not symmetric about the incident
+    direction: resampling draws its candidates from it, not by turning the first."""
+    fog = homogeneous(2.0, albedo=0.9)
+    S = np.array([1.0, 0.2, 0.5, 0.1, 0.0, 0.0], np.float32).reshape(1, 1, 1, 6)
+    fog["phase"] = {"type": "sggx", "S": {"type": "gridvolume", "grid": mi.VolumeGrid(S)}}
+    return media_scene(fog, env=0)
+
+
 CASES = {"dense_ball": _dense_ball, "chromatic_ball": _chromatic_ball, "smoke": _smoke,
-         "camera_inside": _camera_inside, "lit_fog": _lit_fog, "thin_fog": _thin_fog}
+         "camera_inside": _camera_inside, "lit_fog": _lit_fog, "thin_fog": _thin_fog,
+         "microflake_fog": _microflake_fog}
+
+
+def test_turned_candidates_keep_the_angle_to_the_axis():
+    """Resampling's candidates turned about the incident direction: unit vectors at the
+    first one's angle to the axis, evenly around it (their sum is along the axis)."""
+    rng = np.random.default_rng(3)
+    axis, d = (rng.normal(size=(3, 64)) for _ in range(2))
+    axis, d = axis / np.linalg.norm(axis, axis=0), d / np.linalg.norm(d, axis=0)
+    A, D = (mi.Vector3f(*(mi.Float(v.astype(np.float32)) for v in x)) for x in (axis, d))
+    out = [np.array(v).reshape(3, -1) for v in sampling.turned(A, D, 4)]
+    for v in out:
+        assert np.allclose(np.linalg.norm(v, axis=0), 1.0, atol=1e-5)
+        assert np.allclose((v * axis).sum(0), (d * axis).sum(0), atol=1e-5)
+    assert np.allclose(d + sum(out), 4 * (d * axis).sum(0) * axis, atol=1e-4)
+    assert np.allclose((out[1] * d).sum(0), 2 * (d * axis).sum(0) ** 2 - 1, atol=1e-5)
 
 
 @pytest.mark.parametrize("case", list(CASES))
