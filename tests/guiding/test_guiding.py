@@ -213,14 +213,16 @@ def test_guided_renders_estimate_the_same_image(case):
     (0.7, ()), (3.0, ()), (math.inf, ()),
     (3.0, ([0.1, 0.3, 0.1],)), (math.inf, ([0.1, 0.3, 0.1], [0.9, 0.2, -0.5]))])
 def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps):
-    """Guided distances along a segment (a light grid of random cell values, some 0; with
-    lamps, the equiangular components toward them too): chi-square test (alpha 1e-3) of
-    2^18 samples over 40 bins of [0, min(t_end, 4)] and the tail beyond, against the pdf
-    integrated over each bin (64 midpoints per bin); the pdf integrates to 1."""
+    """Guided distances along a segment (a light grid of random cell values, some 0, some
+    not yet learnt; with lamps, the equiangular components toward them too): chi-square
+    test (alpha 1e-3) of 2^18 samples over 40 bins of [0, min(t_end, 4)] and the tail
+    beyond, against the pdf integrated over each bin (64 midpoints per bin); the pdf
+    integrates to 1."""
     grid = LightGrid(mi.ScalarBoundingBox3f([-1, -1, -1], [1, 1, 1]), resolution=4,
                      lamps=list(lamps))
     rng = np.random.default_rng(3)
     values = rng.random(grid.cells) * (rng.random(grid.cells) > 0.3)
+    values[rng.random(grid.cells) < 0.2] = distance.UNKNOWN      # cells not yet learnt
     grid.mean = mi.Float(values.astype(np.float32))
     n, sigma = 1 << 18, 1.3
     # one lane's segment (width-1 arrays broadcast against the samples)
