@@ -81,6 +81,8 @@ VARIANTS = {
        for t in (0.0, 0.1, 0.2, 0.5)},
     # issue 29: equiangular sampling toward point and spot lights (experiment)
     "equiangular": {"type": "volpath_delta", "equiangular": True},
+    # issue 47: path guiding in media (its defaults)
+    "guided": {"type": "volpath_delta", "guiding": "volumes"},
     "volpath_raymarch": {"type": "volpath_raymarch"},   # biased: see ``--bias``
     "rm_rr0.999": {"type": "volpath_raymarch", "rr_max_survival": 0.999},
 }
