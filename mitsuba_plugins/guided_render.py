@@ -3,7 +3,8 @@
 ``mi.render`` call (docs/method.md section 13).
 
 The schedule: training passes of doubling sample counts (from ``spp / 128``, at least 1)
-while their sum stays within ``guiding_training`` of ``spp``, then one pass with the rest.
+while their sum stays within ``guiding_training`` of ``spp``, then one pass with the rest;
+one plain pass where that training budget is below :data:`MIN_TRAINING_PATHS` paths.
 The first pass samples the phase function (or BSDF) alone; every pass records its medium
 (or surface) vertices into the field except the last; the field is fixed within a pass (folded in between), so
 each pass is an unbiased estimate. The guided passes are combined in proportion to their
@@ -73,8 +74,20 @@ class _PassRender:
         return L, valid, [], None
 
 
-def schedule(spp: int, training: float) -> list:
-    """Sample counts of the passes: doubling training passes, then the rest."""
+#: paths the training passes must trace together for a render to be guided: a pass costs
+#: a few milliseconds beside its paths (Python traces its loop, its kernels launch, the
+#: records are folded in; 5-7 ms on the 2-core EPYC), which at 32x32 and 64 spp took most
+#: of a guided render's time (the dense family's cube pairs: 35 spp against 79 unguided in
+#: the same time), and 16 spp of 32x32 pixels teach a field little. Below it: one plain
+#: pass. 128x128 at 64 spp (a quarter of them training) is just guided.
+MIN_TRAINING_PATHS = 1 << 18
+
+
+def schedule(spp: int, training: float, pixels: int = 1 << 30) -> list:
+    """Sample counts of the passes: doubling training passes, then the rest; ``pixels``:
+    the paths of one sample per pixel (:data:`MIN_TRAINING_PATHS`)."""
+    if training * spp * pixels < MIN_TRAINING_PATHS:
+        return [spp]
     passes, spent, n = [], 0, max(1, spp // 128)
     while spent + n <= training * spp and spent + n < spp:
         passes.append(n)
@@ -99,7 +112,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     if spp == 0:
         spp = sensor.sampler().sample_count()
     report = integrator.guiding_report = GuidingReport()
-    plan = schedule(spp, integrator.guiding_training)
+    size = sensor.film().crop_size()
+    plan = schedule(spp, integrator.guiding_training, int(size[0]) * int(size[1]))
     surfaces = integrator.guiding == "surfaces"
     if (not surfaces and not SceneMedia(scene).any) or len(plan) == 1:
         # nothing to guide (no medium), or too few samples to learn from: one plain pass

@@ -17,6 +17,7 @@ from scipy import stats as scipy_stats
 
 from helpers import (assert_mean_equals, assert_same_expectation, cached_estimate, camera, grid,
                      homogeneous, load, loaded, media_scene, render)
+from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import GuidingField, HistogramField, media_bounds
@@ -32,6 +33,14 @@ def _fresh_kernels_after():
     renders' kernels did that to a gradient test of the spectral and mono suites."""
     yield
     dr.flush_kernel_cache()
+
+
+@pytest.fixture(autouse=True)
+def _guide_small_images(monkeypatch):
+    """This module's images are small (32x32 and less): guide them anyway
+    (``guided_render.MIN_TRAINING_PATHS`` would render them in one plain pass; its own
+    test sets it back)."""
+    monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", 0)
 
 
 def _field_with_lobe(mu, r, records=1000):
@@ -303,6 +312,19 @@ def test_guided_roulette_is_unbiased_and_bounded():
         t = (kept.mean() - beta) / (kept.std(ddof=1) / np.sqrt(n))
         assert abs(t) < scipy_stats.norm.isf(0.5e-4), (beta, gain, kept.mean())
         assert kept.max() <= max(1.0, beta / rr.max_survival) * (1 + 1e-5), (beta, gain)
+
+
+def test_small_images_render_in_one_plain_pass(monkeypatch):
+    """Below ``MIN_TRAINING_PATHS`` paths of training (32x32 at 64 spp) a guided render
+    is one plain pass; at 16x the sample count it trains first."""
+    monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", 1 << 18)
+    scene = media_scene(homogeneous(1.5, albedo=0.8), env=0)
+    integrator = mi.load_dict(GUIDED)
+    mi.render(scene, integrator=integrator, spp=64, seed=1)
+    assert integrator.guiding_report.passes == [64]
+    mi.render(scene, integrator=integrator, spp=1024, seed=1)
+    assert len(integrator.guiding_report.passes) > 1
+    assert sum(integrator.guiding_report.passes) == 1024
 
 
 def test_guided_open_furnace():
