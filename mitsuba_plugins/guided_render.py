@@ -10,9 +10,10 @@ The first pass samples the phase function (or BSDF) alone; every pass records it
 each pass is an unbiased estimate. The guided passes are combined in proportion to their
 sample counts, and the first pass, which guides nothing, only trains: fixed weights, so
 the combination is unbiased too (weights from the passes' measured variances would
-favour the guided passes but depend on the data). Its samples are at most 1/128 of the
-render's; with weight, the tuning set's lamp ball had 7% more variance per sample
-(pass 1: 14.1 relMSE per sample; the guided passes: 2.6-3.2).
+favour the guided passes but depend on the data). Its samples are max(1, spp / 128)
+of the render's (1/64 at 64 spp, 1/128 from 128 spp); with weight, the tuning set's
+lamp ball had 7% more variance per sample (pass 1: 14.1 relMSE per sample; the guided
+passes: 2.6-3.2).
 
 Each pass is Mitsuba's own Python render of an ``ADIntegrator`` (film, rays, one wavefront),
 so a guided render never re-enters the C++ ``SamplingIntegrator.render`` from Python.

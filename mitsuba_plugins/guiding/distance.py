@@ -44,7 +44,7 @@ MIN_RECORDS = 16
 #: the value of a cell with fewer records: on a segment, the largest known value there
 #: (a cell not yet learnt is not taken for a dark one: with unknown cells at the floor,
 #: points went only where records had been, and the tuning set's gap room at max_depth 2
-#: had 3.2x the variance of free-flight vertices; 1.0x with this)
+#: had 3.2x the variance of free-flight vertices; 0.61x with this)
 UNKNOWN = -1.0
 #: share of the guided density drawn toward small lights inside a medium (equiangular,
 #: one component per light of :func:`lamps`, equal shares)
