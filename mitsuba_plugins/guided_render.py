@@ -124,11 +124,12 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     bins = getattr(integrator, "guiding_bins", 0)
     field = HistogramField(bounds, integrator.guiding_resolution, bins) if bins else \
         GuidingField(bounds, integrator.guiding_resolution)
+    media = scene_media(scene)
     light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds)) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
-        distance.worthwhile(scene_media(scene), bounds) else None
+        distance.worthwhile(media, bounds) else None
     symmetric = not any(mi.has_flag(m.phase_function().flags(),
-                                    mi.PhaseFunctionFlags.Microflake) for m in scene_media(scene))
+                                    mi.PhaseFunctionFlags.Microflake) for m in media)
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light
     image, t0 = None, time.perf_counter()

@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.guiding.field import grid_box, grid_cell
+from mitsuba_plugins.guiding.field import cell_index, grid_box, grid_cell
 from mitsuba_plugins.tracking import equiangular
 
 #: cells per axis of the light grid
@@ -167,12 +167,8 @@ class LightGrid:
         scale = mi.Vector3f(*self.inv_size) * r
         x = (ray(0.5 * h) - mi.Point3f(*self.lo)) * scale
         step = ray.d * h * scale
-        out = []
-        for k in range(n):
-            i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(dr.fma(step, k, x))), 0, r - 1))
-            out.append(dr.gather(mi.Float, self.mean, mi.UInt32((i.z * r + i.y) * r + i.x),
-                                 active))
-        return out
+        return [dr.gather(mi.Float, self.mean, cell_index(dr.fma(step, k, x), r), active)
+                for k in range(n)]
 
     def record(self, p: mi.Point3f, contribution: mi.Spectrum, active) -> None:
         """One medium point's emitter sample per unit of throughput (0 counts)."""

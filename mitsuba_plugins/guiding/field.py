@@ -87,8 +87,12 @@ def grid_box(bbox) -> tuple:
 
 def grid_cell(lo, inv_size, r: int, p: mi.Point3f) -> mi.UInt32:
     """The cell of an ``r^3`` grid over the box ``(lo, 1 / size)`` holding ``p`` (clamped)."""
-    x = (p - mi.Point3f(*lo)) * mi.Vector3f(*inv_size)
-    i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(x * r)), 0, r - 1))
+    return cell_index((p - mi.Point3f(*lo)) * mi.Vector3f(*inv_size) * r, r)
+
+
+def cell_index(x: mi.Vector3f, r: int) -> mi.UInt32:
+    """The cell of an ``r^3`` grid at ``x`` in cell units (clamped to the grid)."""
+    i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(x)), 0, r - 1))
     return mi.UInt32((i.z * r + i.y) * r + i.x)
 
 
@@ -117,10 +121,9 @@ class GuidingField:
 
     # -- tables ------------------------------------------------------------------------
     def _upload(self, mu: np.ndarray, kappa: np.ndarray, fluence=None) -> None:
-        # a lobe below FLAT is the uniform distribution (kappa 0); the density's factor
-        # ``(1 - UNIFORM) kappa / (2 pi (1 - exp(-2 kappa)))`` is tabled per cell, so that
-        # a lookup costs one exponential per direction
-        kappa = np.where(kappa < FLAT, 0.0, kappa)
+        # ``kappa``: 0 for the uniform distribution (no lobe, or one below FLAT); the
+        # density's factor ``(1 - UNIFORM) kappa / (2 pi (1 - exp(-2 kappa)))`` is tabled
+        # per cell, so that a lookup costs one exponential per direction
         k = np.where(kappa > 0, kappa, 1.0)
         norm = np.where(kappa > 0, k / (2 * math.pi * -np.expm1(-2.0 * k)), 1.0 / (4 * math.pi))
         self.mu = [mi.Float(mu[:, i].astype(np.float32)) for i in range(3)]
@@ -143,8 +146,9 @@ class GuidingField:
         fitted = known & (length > 0)
         mu = np.where(fitted[:, None], V / np.where(length > 0, length, 1.0)[:, None], 0.0)
         kappa = np.where(fitted, concentration(length / np.where(W > 0, W, 1.0)), 0.0)
+        kappa = np.where(kappa < FLAT, 0.0, kappa)     # below FLAT: uniform, no lobe
         self._upload(mu, kappa, np.where(known, W / np.where(N > 0, N, 1.0), 0.0))
-        return int(fitted.sum())
+        return int((kappa > 0).sum())
 
     # -- lookups (Dr.Jit, any variant) --------------------------------------------------
     def cell(self, p: mi.Point3f) -> mi.UInt32:
