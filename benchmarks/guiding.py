@@ -10,7 +10,8 @@ the defaults (``guiding_candidates``, ``guiding_resolution``, ``guiding_training
 test set reports them.
 
 * tuning: a dense gray ball under a small light (sigma_t 20, albedo 0.95, HG 0.5), a fog
-  room lit through a hole in one wall (camera inside the fog);
+  room lit through a hole in one wall (camera inside the fog), a fog ball holding a small
+  lamp, a cube of forward-scattering fog (HG 0.75) holding a small lamp;
 * test: the smooth smoke of scenes/smoke.xml under its area light, a camera inside a
   forward-scattering cloud (HG 0.6), a strongly forward-scattering ball (HG 0.9), a dense
   chromatic ball under an environment.
@@ -201,11 +202,24 @@ def lamp_ball(res: int) -> mi.Scene:
     return mi.load_dict(scene)
 
 
+def forward_lamp(res: int) -> mi.Scene:
+    """A fog cube of forward-scattering fog (sigma_t 1, albedo 0.9, HG g 0.75) holding a
+    small spherical lamp, the camera outside (tuning: a light inside a medium whose phase
+    function sends phase-sampled rays onto it)."""
+    scene = media_scene(sensor=camera(res), env=0, as_dict=True, extra={
+        "fog": {"type": "cube", "bsdf": {"type": "null"},
+                "interior": homogeneous(1.0, albedo=0.9, g=0.75)}})
+    scene["light"] = {"type": "sphere", "center": [-0.3, -0.2, 0.3], "radius": 0.08,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 400.0}}}
+    return mi.load_dict(scene)
+
+
 SCENES = {
     "dense_ball": ("tuning", lambda res: media_scene(homogeneous(20.0, albedo=0.95, g=0.5),
                                                      sensor=camera(res), env=0)),
     "gap_room": ("tuning", gap_room),
     "lamp_ball": ("tuning", lamp_ball),
+    "forward_lamp": ("tuning", forward_lamp),
     "smoke": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "smoke.xml"),
                                                res=str(res))),
     "camera_inside": ("test", _inside),

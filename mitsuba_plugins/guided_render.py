@@ -125,7 +125,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     field = HistogramField(bounds, integrator.guiding_resolution, bins) if bins else \
         GuidingField(bounds, integrator.guiding_resolution)
     media = scene_media(scene)
-    light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds)) \
+    light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds),
+                               lamp_boxes=distance.lamps(scene, bounds, boxes=True)) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
         distance.worthwhile(media, bounds) else None
     symmetric = not any(mi.has_flag(m.phase_function().flags(),

@@ -192,6 +192,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     gd = replay is None and not eq and distance.traced(guide, media) \
         and "nee" in settings.terms
     learn_light = distance.learning(guide)
+    # emitter samples at guided points take lamps' whole contribution (LightGrid.on_lamp)
+    lamp_nee = gd and bool(guide.light.lamp_boxes)
 
     # ------------------------------ loop state ------------------------------
     ray = mi.Ray3f(ray)                              # current ray (unit direction)
@@ -206,6 +208,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_si = dr.zeros(mi.Interaction3f)             # last real vertex (MIS reference)
     prev_pdf = mi.Float(1.0)                         # p_b / phase pdf of the direction
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
+    prev_point = mi.Bool(False) if lamp_nee else None  # ... its emitter sample at a guided point
     active = mi.Bool(active)                         # lanes still tracing
     grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
     guided = guide is not None and guide.sampling    # directions from the field
@@ -284,8 +287,10 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         shown = surface if not integrator.hide_emitters else surface & (depth > 0)
         if dr.hint("emission" not in settings.terms, mode="scalar"):
             shown = mi.Bool(False)
-        L[shown] = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
-                                             prev_pdf, prev_delta), L)
+        Le = emission_mis(scene, emitters, integrator.mis, si, prev_si, prev_pdf, prev_delta)
+        if dr.hint(lamp_nee, mode="scalar"):   # a lamp's light there: the point's sample
+            Le = dr.select(prev_point & guide.light.on_lamp(si.p), 0.0, Le)
+        L[shown] = dr.fma(beta, Le, L)
 
         # --------------------- the vertex: scatter or surface ---------------------
         on_surface = surface & si.is_valid()
@@ -339,6 +344,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
         f_l = dr.select(in_medium, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))
         p_dir = dr.select(in_medium, phase_pdf, p_b)
+        if dr.hint(lamp_nee, mode="scalar"):   # MIS weight 1 toward a lamp
+            p_dir = dr.select(at_point & guide.light.on_lamp(ds.p), 0.0, p_dir)
         nee = emitter_contribution(integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir)
         L[active_em] = dr.fma(nee_beta, nee, L)
         if dr.hint(gd, mode="scalar"):
@@ -382,6 +389,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         prev_pdf[real] = dr.select(scattered, phase_pdf_s, bs.pdf)
         prev_delta[real] = dr.select(scattered, ~nee_medium,
                                      mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        if dr.hint(lamp_nee, mode="scalar"):
+            prev_point[real] = scattered & handled
 
         # ------------------------- Russian roulette -------------------------
         depth[real] += 1

@@ -85,7 +85,7 @@ def worthwhile(media: list, bbox, resolution: int = RESOLUTION) -> bool:
     return False
 
 
-def lamps(scene: mi.Scene, bbox) -> list:
+def lamps(scene: mi.Scene, bbox, boxes: bool = False) -> list:
     """Positions of the small lights that sit inside a medium (host side, once per
     render, no kernel launched): point and spot lights, and emitting shapes smaller than
     :data:`SMALL_LAMP` of ``bbox``, whose centre lies in the bounds of a shape with an
@@ -94,7 +94,8 @@ def lamps(scene: mi.Scene, bbox) -> list:
     media's size resolves; the guided density then also draws toward it (equiangular).
     Bounds, not the shape itself: a lamp in a corner of a ball's bounds only costs samples
     (the estimate is unbiased for any positions). Empty where there are more than
-    :data:`MAX_LAMPS`."""
+    :data:`MAX_LAMPS`. ``boxes``: instead, the bounds ``(lo, hi)`` of those lamps that
+    are shapes (:meth:`LightGrid.on_lamp`)."""
     small = SMALL_LAMP * float(np.min(np.array(bbox.max) - np.array(bbox.min)))
     media = [s.bbox() for s in scene.shapes()
              if s.interior_medium() is not None and not s.is_emitter()]
@@ -102,7 +103,7 @@ def lamps(scene: mi.Scene, bbox) -> list:
     anywhere = not media and any(s.get_medium() is not None for s in scene.sensors())
     found = []
     for emitter in scene.emitters():
-        params = mi.traverse(emitter)
+        params, box = mi.traverse(emitter), None
         if "position" in params.keys():                    # point light
             p = np.array(params["position"], np.float64).ravel()
         elif mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition) and \
@@ -117,8 +118,16 @@ def lamps(scene: mi.Scene, bbox) -> list:
             continue
         if anywhere or any(bool(b.contains(mi.ScalarPoint3f(*[float(x) for x in p])))
                            for b in media):
-            found.append([float(x) for x in p])
-    return found if len(found) <= MAX_LAMPS else []
+            found.append(([float(x) for x in p], box))
+    if len(found) > MAX_LAMPS:
+        return []
+    if not boxes:
+        return [p for p, _ in found]
+    # a margin of 1e-3 of the box's size: points on the surface, found by a ray or
+    # sampled, may fall a rounding error outside its exact bounds
+    return [(np.array(b.min) - 1e-3 * (np.array(b.max) - np.array(b.min)),
+             np.array(b.max) + 1e-3 * (np.array(b.max) - np.array(b.min)))
+            for _, b in found if b is not None]
 
 
 def learning(guide) -> bool:
@@ -130,13 +139,17 @@ class LightGrid:
     """Per cell of an ``r^3`` grid over ``bbox``: the mean next-event estimate of the
     medium points that fell in it (channels averaged), learnt between passes."""
 
-    def __init__(self, bbox, resolution: int = RESOLUTION, lamps: list = ()):
+    def __init__(self, bbox, resolution: int = RESOLUTION, lamps: list = (),
+                 lamp_boxes: list = ()):
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
         self.lo, self.inv_size = grid_box(bbox)
         # where the density also draws toward (:func:`lamps`); opaque: a moved light
         # compiles nothing new
         self.lamps = [dr.opaque(mi.Point3f, p) for p in lamps]
+        # the bounds of those that are shapes (:meth:`on_lamp`)
+        self.lamp_boxes = [tuple(dr.opaque(mi.Point3f, [float(x) for x in c]) for c in b)
+                           for b in lamp_boxes]
         self.sums = np.zeros((self.cells, 2), np.float64)     # value, vertices
         self._upload(np.full(self.cells, UNKNOWN))
 
@@ -169,6 +182,20 @@ class LightGrid:
         step = ray.d * h * scale
         return [dr.gather(mi.Float, self.mean, cell_index(dr.fma(step, k, x), r), active)
                 for k in range(n)]
+
+    def on_lamp(self, y: mi.Point3f) -> mi.Bool:
+        """Whether the point ``y`` of an emitter lies in the bounds of a lamp that is a
+        shape. There next-event estimation at a guided point takes the whole
+        contribution (MIS weight 1) and emission found from a vertex whose emitter
+        sample that point took counts 0 (``volume_loop``): the guided density draws
+        toward the lamp, so its points near the lamp are frequent and their weights
+        bounded, while a phase-sampled hit from a free-flight vertex near it is a rare,
+        large sample. Any MIS weights that are one function of the vertex, direction
+        and light point for both techniques and sum to 1 keep the estimate unbiased."""
+        out = mi.Bool(False)
+        for lo, hi in self.lamp_boxes:
+            out |= dr.all((y >= lo) & (y <= hi))
+        return out
 
     def record(self, p: mi.Point3f, contribution: mi.Spectrum, active) -> None:
         """One medium point's emitter sample per unit of throughput (0 counts)."""

@@ -279,6 +279,24 @@ def test_lamps_are_small_lights_inside_a_medium():
     assert scene([0.2, 0.1, 0.0], 0.02, n=distance.MAX_LAMPS + 1) == []
 
 
+def test_lamp_boxes_hold_the_lamps_that_are_shapes():
+    """``lamps(..., boxes=True)``: the bounds of a small sphere lamp (not of a point light),
+    and ``LightGrid.on_lamp`` is true on its surface, false a little way off it."""
+    d = media_scene(homogeneous(1.0), env=0, as_dict=True)
+    d["lamp"] = {"type": "sphere", "center": [0.2, 0.1, 0.0], "radius": 0.05,
+                 "emitter": {"type": "area"}}
+    d["point"] = {"type": "point", "position": [0.0, -0.3, 0.2]}
+    s = mi.load_dict(d)
+    bounds = media_bounds(s)
+    boxes = distance.lamps(s, bounds, boxes=True)
+    assert len(boxes) == 1 and len(distance.lamps(s, bounds)) == 2
+    assert np.allclose(boxes[0][0], [0.15, 0.05, -0.05], atol=1e-3)
+    assert np.allclose(boxes[0][1], [0.25, 0.15, 0.05], atol=1e-3)
+    grid = distance.LightGrid(bounds, lamps=distance.lamps(s, bounds), lamp_boxes=boxes)
+    p = mi.Point3f([0.25, 0.2, 0.2, 0.3], [0.1, 0.15, 0.1, 0.1], [0.0, 0.0, 0.05, 0.0])
+    assert np.array(grid.on_lamp(p)).tolist() == [True, True, True, False]
+
+
 @pytest.mark.parametrize("bins", [16, 0])
 def test_guided_surfaces_estimate_the_same_image(bins):
     """``path_rr`` with ``guiding = surfaces`` (histograms, and one lobe per cell) against
