@@ -289,7 +289,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             shown = mi.Bool(False)
         Le = emission_mis(scene, emitters, integrator.mis, si, prev_si, prev_pdf, prev_delta)
         if dr.hint(lamp_nee, mode="scalar"):   # a lamp's light there: the point's sample
-            Le = dr.select(prev_point & guide.light.on_lamp(si.p), 0.0, Le)
+            # (an escaped ray's si.p is no point of a light: never counted a lamp's)
+            Le = dr.select(prev_point & si.is_valid() & guide.light.on_lamp(si.p), 0.0, Le)
         L[shown] = dr.fma(beta, Le, L)
 
         # --------------------- the vertex: scatter or surface ---------------------

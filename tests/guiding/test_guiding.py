@@ -186,9 +186,20 @@ def _microflake_fog():
     return media_scene(fog, env=0)
 
 
+def _lamp_under_sky():
+    """A lamp at the centre of a forward-scattering fog ball under an environment: its
+    light at guided points is next-event estimation's alone (``LightGrid.on_lamp``),
+    the environment's keeps both techniques, and rays that escape to it never count as
+    hitting the lamp whose bounds hold the origin."""
+    d = media_scene(homogeneous(1.0, albedo=0.9, g=0.7), env=0.5, as_dict=True)
+    d["lamp"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.06,
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 100.0}}}
+    return mi.load_dict(d)
+
+
 CASES = {"dense_ball": _dense_ball, "chromatic_ball": _chromatic_ball, "smoke": _smoke,
          "camera_inside": _camera_inside, "lit_fog": _lit_fog, "thin_fog": _thin_fog,
-         "microflake_fog": _microflake_fog}
+         "microflake_fog": _microflake_fog, "lamp_under_sky": _lamp_under_sky}
 
 
 def test_turned_candidates_keep_the_angle_to_the_axis():
