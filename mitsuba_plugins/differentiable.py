@@ -8,7 +8,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.path_loop import traced_once
+from mitsuba_plugins.loop_state import traced_once
 from mitsuba_plugins.tracking import empty_scatter
 from mitsuba_plugins.tracking.replay import Replay
 from mitsuba_plugins.tracking.scene_media import SceneMedia

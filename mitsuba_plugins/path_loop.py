@@ -11,6 +11,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding.sampling import Records, mix_surface, still_guided
+from mitsuba_plugins.loop_state import traced_once, widened
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
 from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
@@ -68,16 +69,6 @@ class PathIntegrator(mi.SamplingIntegrator):
         return trace_surfaces(self, scene, sampler, ray, active, guide)
 
 
-def traced_once():
-    """The scope in which our path loops are traced: Dr.Jit's ``OptimizeLoops`` records
-    each symbolic loop a second time to drop its loop-invariant state, so our nested
-    loops (path, walk, crossing) were traced up to 2^depth times for kernels that LLVM
-    optimises to the same speed (issue 29: 1.4-2.5 ms less Python tracing per render,
-    kernel time unchanged; issue 48: a gradient step of 6 views at 32^2 x 8 spp, which
-    traces the loops three times per view, 341 -> 226 ms)."""
-    return dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False)
-
-
 @dr.syntax
 def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                    active: mi.Bool, guide=None):
@@ -94,7 +85,7 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     max_depth = depth_limit(integrator.max_depth)
 
     # ------------------------------ loop state ------------------------------
-    ray = mi.Ray3f(ray)                              # current ray
+    ray = widened(mi.Ray3f(ray), ray)                # current ray (its time as wide)
     L = mi.Spectrum(0.0)                             # radiance estimate
     beta = mi.Spectrum(1.0)                          # path throughput
     eta = mi.Float(1.0)                              # product of IOR ratios (for roulette)

@@ -23,7 +23,8 @@ PLUGINS = {
     "volpath_raymarch": "mitsuba_plugins.integrators.volpath_raymarch",
 }
 #: shared modules whose classes bind variant types at import; re-imported first
-SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.tracking.majorant_grid",
+SUPPORT_MODULES = ("mitsuba_plugins.validity", "mitsuba_plugins.loop_state",
+                   "mitsuba_plugins.tracking.majorant_grid",
                    "mitsuba_plugins.tracking.walk",
                    "mitsuba_plugins.tracking.null_collision",
                    "mitsuba_plugins.tracking.majorant",

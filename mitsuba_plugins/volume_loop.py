@@ -15,6 +15,7 @@ import mitsuba as mi
 from mitsuba_plugins.guiding import distance
 from mitsuba_plugins.guiding.sampling import Records, resample, roulette, still_guided
 from mitsuba_plugins.instrument import count, settings
+from mitsuba_plugins.loop_state import widened
 from mitsuba_plugins.params import depth_limit
 from mitsuba_plugins.path_loop import PathIntegrator
 from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_contribution
@@ -200,7 +201,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     medium = mi.MediumPtr(medium)                    # medium the ray travels in
     L = mi.Spectrum(0.0)                             # radiance estimate
     beta = mi.Spectrum(1.0)                          # throughput, already / mean(r_u)
-    r_u = mi.Spectrum(1.0)                           # spectral-MIS pdf ratios (mean 1)
+    r_u = widened(mi.Spectrum(1.0), ray)             # spectral-MIS pdf ratios (mean 1)
     eta = mi.Float(1.0)                              # product of IOR ratios (for roulette)
     depth = mi.UInt32(0)                             # real vertices so far
     valid_ray = mi.Bool(not integrator.hide_emitters  # alpha: hit something or sees env
@@ -210,7 +211,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     prev_delta = mi.Bool(True)                       # ... not reachable by NEE (camera: yes)
     prev_point = mi.Bool(False) if lamp_nee else None  # ... its emitter sample at a guided point
     active = mi.Bool(active)                         # lanes still tracing
-    grad = mi.Spectrum(0.0)                          # tangent (forward-mode replay)
+    grad = widened(mi.Spectrum(0.0), ray)            # tangent (forward-mode replay)
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
@@ -218,7 +219,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     rr_ref = mi.Float(0.0) if steered else None      # ... the path's score at its first vertex
     gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)
     empty = empty_scatter.for_replay(replay, media)
-    forced = mi.Bool(False)                          # a sub-path's first vertex: at ray.o
+    forced = widened(mi.Bool(False), ray)            # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
 
     while dr.hint(active, label="volpath_delta"):

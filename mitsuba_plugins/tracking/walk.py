@@ -30,6 +30,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins import instrument
+from mitsuba_plugins.loop_state import widened
 from mitsuba_plugins.tracking.majorant_grid import DDAState
 
 VARIANT = mi.variant()
@@ -94,6 +95,8 @@ def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule: Wal
     t = mi.Float(t_in)                                  # position reached on the ray
     work = mi.UInt32(0)                                 # iterations so far (work budget)
     active = mi.Bool(entered)
+    # what the body leaves unchanged must be as wide as the loop (path_loop.widened)
+    ray, seg, state, work = (widened(x, entered) for x in (mi.Ray3f(ray), seg, state, work))
 
     while dr.hint(active, label=rule.label):
         if dr.hint(tracker.hot and rule.budget is not None, mode="scalar"):
