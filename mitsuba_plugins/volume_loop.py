@@ -227,13 +227,22 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # equiangular sampling needs the segment's end: no flight drawn before; guided
         # points need it too, and take the coefficients read with the flight's number
         reach = None if eq else strategy.reach(ctx, medium, ray, active)
-        if dr.hint(reach is None or gd, mode="scalar"):
+        if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
+        elif dr.hint(gd, mode="scalar"):
+            # the segment's end on every lane (its guided point is drawn over all of
+            # it), the surface interaction only where the flight will reach it
+            pi = scene.ray_intersect_preliminary(ray, False, active)
+            si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active & (pi.t <= reach))
+            t_end = dr.select(active, pi.t, dr.inf)
+            end_bsdf = pi.shape.bsdf()
         else:
             si = scene.ray_intersect(mi.Ray3f(ray.o, ray.d, dr.minimum(ray.maxt, reach),
                                               ray.time, ray.wavelengths),
                                      mi.RayFlags.All, False, active)
         count("intersections", active)
+        if dr.hint(not gd, mode="scalar"):
+            t_end = si.t                      # where the segment ends
 
         # ------------------- free flight through the medium -------------------
         if dr.hint(replay is not None, mode="scalar"):
@@ -241,7 +250,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             replay.at_depth(depth)
         if dr.hint(empty is not None, mode="scalar"):
             empty.silence(replay, dL_path)
-        flight = free_flight(ctx, strategy, medium, ray, si.t, beta, r_u,
+        flight = free_flight(ctx, strategy, medium, ray, t_end, beta, r_u,
                              depth + 1 < max_depth, active if empty is None else active & ~forced)
         if dr.hint(eq, mode="scalar"):
             # a second light sample along the segment (where a flight's vertex would
@@ -253,13 +262,16 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             L += L_eq
             valid_ray |= dr.any(L_eq != 0)
         bsdf = si.bsdf(ray)                 # the surface the segment ends at, if any
-        smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        # whether the segment ends at a surface that samples emitters (with guided
+        # points known on every lane, not only where the flight reaches it)
+        smooth = (t_end < dr.inf) & mi.has_flag((end_bsdf if gd else bsdf).flags(),
+                                                mi.BSDFFlags.Smooth)
         if dr.hint(gd, mode="scalar"):
             # the segment's emitter sample at a point drawn toward where the learnt
             # once-scattered light is (guiding.distance), not at its free-flight vertex
             gd_lanes = active & (medium != None) & medium.is_homogeneous() \
                 & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
-            gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], si.t, smooth,
+            gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], t_end, smooth,
                                      gd_lanes, sampler.next_1d(gd_lanes))
             gd_beta = beta * gd_point.factor
         if dr.hint(empty is not None, mode="scalar"):
