@@ -57,7 +57,7 @@ CONFIGS = {
     "guided_d_only": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": 0.0,
                       "guiding_candidates": 1},
     **{f"guided_c{c}": {"type": "volpath_delta", "guiding": "volumes", "guiding_candidates": c}
-       for c in (1, 2)},
+       for c in (1, 2, 3)},
     # surfaces (path_rr), against Mitsuba's path
     "path_rr": {"type": "path_rr", "max_depth": 12},
     "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},

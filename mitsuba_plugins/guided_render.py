@@ -79,9 +79,14 @@ class _PassRender:
 #: a few milliseconds beside its paths (Python traces its loop, its kernels launch, the
 #: records are folded in; 5-7 ms on the 2-core EPYC), which at 32x32 and 64 spp took most
 #: of a guided render's time (the dense family's cube pairs: 35 spp against 79 unguided in
-#: the same time), and 16 spp of 32x32 pixels teach a field little. Below it: one plain
-#: pass. 128x128 at 64 spp (a quarter of them training) is just guided.
-MIN_TRAINING_PATHS = 1 << 18
+#: the same time). Below it: one plain pass. First 2^18 (128x128 at 64 spp just guided):
+#: a benchmark at equal time then rendered the gap room at 63 spp, unguided. With a pass's
+#: tracing halved (loop_state.widened), the tuning set, guided over unguided efficiency
+#: (6 renders each): 128x128 at 32 spp (2^17) gap room 1.60, lamp ball 2.56, forward lamp
+#: 1.81, dense ball 0.93; 64x64 at 64 spp (2^16) 1.51, 2.42, 1.53, 1.01; 32x32 at 64 spp
+#: (2^14) 1.26, 1.89, 1.65, 0.85. So 2^16: 64x64 at 64 spp and 128x128 from 16 spp are
+#: guided, 32x32 at 64 spp (the dense family's size) is not.
+MIN_TRAINING_PATHS = 1 << 16
 
 
 def schedule(spp: int, training: float, pixels: int = 1 << 30) -> list:

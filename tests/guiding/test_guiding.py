@@ -35,6 +35,10 @@ def _fresh_kernels_after():
     dr.flush_kernel_cache()
 
 
+#: the rule's own value (the fixture below lowers it for every other test)
+DEFAULT_MIN_TRAINING_PATHS = guided_render.MIN_TRAINING_PATHS
+
+
 @pytest.fixture(autouse=True)
 def _guide_small_images(monkeypatch):
     """This module's images are small (32x32 and less): guide them anyway
@@ -346,7 +350,7 @@ def test_guided_roulette_is_unbiased_and_bounded():
 def test_small_images_render_in_one_plain_pass(monkeypatch):
     """Below ``MIN_TRAINING_PATHS`` paths of training (32x32 at 64 spp) a guided render
     is one plain pass; at 16x the sample count it trains first."""
-    monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", 1 << 18)
+    monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", DEFAULT_MIN_TRAINING_PATHS)
     scene = media_scene(homogeneous(1.5, albedo=0.8), env=0)
     integrator = mi.load_dict(GUIDED)
     mi.render(scene, integrator=integrator, spp=64, seed=1)
