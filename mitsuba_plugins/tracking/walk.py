@@ -95,7 +95,7 @@ def walk(tracker, ray: mi.Ray3f, t_max: mi.Float, sampler: mi.Sampler, rule: Wal
     t = mi.Float(t_in)                                  # position reached on the ray
     work = mi.UInt32(0)                                 # iterations so far (work budget)
     active = mi.Bool(entered)
-    # what the body leaves unchanged must be as wide as the loop (path_loop.widened)
+    # what the body leaves unchanged must be as wide as the loop (loop_state.widened)
     ray, seg, state, work = (widened(x, entered) for x in (mi.Ray3f(ray), seg, state, work))
 
     while dr.hint(active, label=rule.label):
