@@ -24,7 +24,9 @@ hole; test: a room lit the same way through a door, a room lit through a slit, t
 box); ``--picture`` draws the field learnt in the
 dense ball, ``docs/results/guiding_field.png``; ``--ceiling --out
 benchmarks/results/guiding_ceiling``: what directional guiding could give with a field
-learnt long beforehand (a 2048-spp training render, then frozen), at equal sample count.
+learnt long beforehand (a 2048-spp training render, then frozen), at equal sample count;
+``--ceiling --surfaces --set tuning --train 1024 --out
+benchmarks/results/guiding_surfaces_ceiling``: the same for ``path_rr``'s histograms.
 """
 from __future__ import annotations
 
@@ -72,6 +74,9 @@ CONFIGS = {
        for b in (0, 8, 16) for f in (0.2, 0.3, 0.5)},
     "path_rr_guided_t50": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
                            "guiding_training": 0.5},
+    **{f"path_rr_guided_r16_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                      "guiding_resolution": 16, "guiding_fraction": f}
+       for f in (0.2, 0.3, 0.5)},
 }
 
 
@@ -332,6 +337,46 @@ def ceiling(args) -> dict:
     return rows
 
 
+def surface_ceiling(args) -> dict:
+    """``--ceiling --surfaces``: as :func:`ceiling` for ``path_rr``'s histograms, on the
+    surface scenes of ``--set``: a field learnt by a ``--train``-spp guided render
+    (``guiding_training`` 0.9) at 8^3 and 16^3 cells, then frozen, sampled at
+    ``guiding_fraction`` 0.2, 0.5 and 0.8; relMSE over unguided ``path_rr``'s at
+    ``--spp``."""
+    import numpy as np
+    from mitsuba_plugins import guided_render
+    rows = {}
+    plain = {"type": "path_rr", "max_depth": 12}
+    for name, (which, make) in SURFACE_SCENES.items():
+        if args.set not in ("both", which):
+            continue
+        scene = make(args.res)
+        ref = dense.reference(scene, args.ref_spp, plain)
+        sensor = scene.sensors()[0]
+
+        def rel(img):
+            return stats.rel_mse(np.array(img)[..., :3], ref[..., :3])
+        off = mi.load_dict(plain)
+        base = [rel(mi.render(scene, integrator=off, spp=args.spp, seed=100 + s))
+                for s in range(args.runs)]
+        row = {"set": which, "off": [float(np.mean(base)), float(np.std(base) / np.sqrt(args.runs))]}
+        for resolution in (8, 16):
+            integrator = mi.load_dict({**plain, "guiding": "surfaces", "guiding_training": 0.9,
+                                       "guiding_resolution": resolution})
+            mi.render(scene, integrator=integrator, spp=args.train, seed=1)
+            field = integrator.guiding_report.field
+            for fraction in (0.2, 0.5, 0.8):
+                guide = guided_render.GuidedPass(field, True, False, fraction=fraction)
+                errs = [rel(guided_render._PassRender(integrator, sensor, guide).render(
+                    scene, sensor, 100 + s, args.spp)) for s in range(args.runs)]
+                ratio = np.array(errs) / np.mean(base)
+                row[f"r{resolution}_f{fraction:g}"] = [float(ratio.mean()),
+                                                       float(ratio.std() / np.sqrt(args.runs))]
+        rows[name] = row
+        print(name, row, flush=True)
+    return rows
+
+
 def sources(res: int = 64, spp: int = 8, runs: int = 16) -> dict:
     """Where the squared error of unguided ``volpath_delta`` lives, per scene: the share
     carried by the 2% largest squared deviations from the per-pixel mean over ``runs``
@@ -361,15 +406,18 @@ def sources(res: int = 64, spp: int = 8, runs: int = 16) -> dict:
 
 def ceiling_markdown(result: dict) -> str:
     cfg = result["config"]
-    keys = ["r4_c4", "r4_c16", "r8_c4", "r8_c16"]
-    lines = ["# Path guiding in media: the most a frozen, well-trained field gives", "",
+    surfaces = cfg.get("surfaces", False)
+    keys = [k for k in next(iter(result["scenes"].values())) if k not in ("set", "off")]
+    lines = ["# Path guiding " + ("at surfaces" if surfaces else "in media") +
+             ": the most a frozen, well-trained field gives", "",
              f"Measured {result['date']} on {result['cpu']} ({result['variant']}) by "
              f"`python3 -m benchmarks.guiding {cfg['argv']}`: res {cfg['res']}, field learnt "
              f"by a {cfg['train']}-spp guided render, then frozen; {cfg['spp']} spp x "
              f"{cfg['runs']} seeds; reference {cfg['ref_spp']} spp. Entries: relMSE of the "
-             "guided pass / relMSE of unguided volpath_delta at the same spp (below 1: "
-             "guiding lowers the variance per sample), +- standard error; rN_cM: N^3 cells, "
-             "M candidates. Training time not counted.", "",
+             "guided pass / relMSE of unguided " + ("path_rr" if surfaces else "volpath_delta") +
+             " at the same spp (below 1: guiding lowers the variance per sample), +- standard "
+             "error; " + ("rN_fA: N^3 cells, guiding_fraction A" if surfaces else
+                          "rN_cM: N^3 cells, M candidates") + ". Training time not counted.", "",
              "| scene | set | off relMSE | " + " | ".join(keys) + " |",
              "|---|---|---|" + "---|" * len(keys)]
     for name, r in result["scenes"].items():
@@ -406,8 +454,8 @@ def main() -> None:
                   "cpu": device_model(dense.VARIANT), "variant": dense.VARIANT,
                   "config": {"res": args.res, "spp": args.spp, "runs": args.runs,
                              "ref_spp": args.ref_spp, "train": args.train,
-                             "argv": " ".join(sys.argv[1:])}}
-        result["scenes"] = ceiling(args)
+                             "surfaces": args.surfaces, "argv": " ".join(sys.argv[1:])}}
+        result["scenes"] = surface_ceiling(args) if args.surfaces else ceiling(args)
         out = Path(args.out)
         output.write_json(out.with_suffix(".json"), result, indent=1)
         output.write_text(out.with_suffix(".md"), ceiling_markdown(result))
