@@ -301,57 +301,22 @@ def picture(path: Path, res: int = 64, spp: int = 512) -> None:
     fig.savefig(path, dpi=110, bbox_inches="tight")
 
 
-def ceiling(args) -> dict:
-    """Relative MSE per sample of guided passes whose field was learnt beforehand (a
-    ``--train``-spp render, its field then frozen) over that of unguided renders, at
-    ``--spp`` samples, ``--runs`` seeds each (mean and standard error): the most that
-    directional guiding with this field can give, training time not counted."""
+def _frozen_fields(args, scenes: dict, plain: dict, guiding: dict, resolutions, guides,
+                   ref_variant=None) -> dict:
+    """Per scene of ``scenes`` in ``--set``: the relMSE of unguided ``plain`` renders, then,
+    per resolution, a field learnt by a ``--train``-spp render of ``plain`` with
+    ``guiding`` (``guiding_training`` 0.9), frozen, and each pass of ``guides(field)``
+    (``{key: GuidedPass}``) rendered at ``--spp``: its relMSE over the unguided one's (mean
+    and standard error over ``--runs`` seeds), keyed ``r{resolution}_{key}``."""
     import numpy as np
     from mitsuba_plugins import guided_render
     rows = {}
-    for name, (which, make) in SCENES.items():
-        scene = make(args.res)
-        ref = dense.reference(scene, args.ref_spp)
-        sensor = scene.sensors()[0]
-
-        def rel(img):
-            return stats.rel_mse(np.array(img)[..., :3], ref[..., :3])
-        off = mi.load_dict({"type": "volpath_delta"})
-        base = [rel(mi.render(scene, integrator=off, spp=args.spp, seed=100 + s))
-                for s in range(args.runs)]
-        row = {"set": which, "off": [float(np.mean(base)), float(np.std(base) / np.sqrt(args.runs))]}
-        for resolution in (4, 8):
-            integrator = mi.load_dict({"type": "volpath_delta", "guiding": "volumes",
-                                       "guiding_resolution": resolution, "guiding_training": 0.9})
-            mi.render(scene, integrator=integrator, spp=args.train, seed=1)
-            field = integrator.guiding_report.field
-            for candidates in (4, 16):
-                guide = guided_render.GuidedPass(field, True, False, candidates)
-                errs = [rel(guided_render._PassRender(integrator, sensor, guide).render(
-                    scene, sensor, 100 + s, args.spp)) for s in range(args.runs)]
-                ratio = np.array(errs) / np.mean(base)
-                row[f"r{resolution}_c{candidates}"] = [float(ratio.mean()),
-                                                       float(ratio.std() / np.sqrt(args.runs))]
-        rows[name] = row
-        print(name, row, flush=True)
-    return rows
-
-
-def surface_ceiling(args) -> dict:
-    """``--ceiling --surfaces``: as :func:`ceiling` for ``path_rr``'s histograms, on the
-    surface scenes of ``--set``: a field learnt by a ``--train``-spp guided render
-    (``guiding_training`` 0.9) at 8^3 and 16^3 cells, then frozen, sampled at
-    ``guiding_fraction`` 0.2, 0.5 and 0.8; relMSE over unguided ``path_rr``'s at
-    ``--spp``."""
-    import numpy as np
-    from mitsuba_plugins import guided_render
-    rows = {}
-    plain = {"type": "path_rr", "max_depth": 12}
-    for name, (which, make) in SURFACE_SCENES.items():
+    for name, (which, make) in scenes.items():
         if args.set not in ("both", which):
             continue
         scene = make(args.res)
-        ref = dense.reference(scene, args.ref_spp, plain)
+        ref = dense.reference(scene, args.ref_spp) if ref_variant is None else \
+            dense.reference(scene, args.ref_spp, ref_variant)
         sensor = scene.sensors()[0]
 
         def rel(img):
@@ -360,21 +325,41 @@ def surface_ceiling(args) -> dict:
         base = [rel(mi.render(scene, integrator=off, spp=args.spp, seed=100 + s))
                 for s in range(args.runs)]
         row = {"set": which, "off": [float(np.mean(base)), float(np.std(base) / np.sqrt(args.runs))]}
-        for resolution in (8, 16):
-            integrator = mi.load_dict({**plain, "guiding": "surfaces", "guiding_training": 0.9,
-                                       "guiding_resolution": resolution})
+        for resolution in resolutions:
+            integrator = mi.load_dict({**plain, **guiding, "guiding_resolution": resolution,
+                                       "guiding_training": 0.9})
             mi.render(scene, integrator=integrator, spp=args.train, seed=1)
-            field = integrator.guiding_report.field
-            for fraction in (0.2, 0.5, 0.8):
-                guide = guided_render.GuidedPass(field, True, False, fraction=fraction)
+            for key, guide in guides(guided_render, integrator.guiding_report.field).items():
                 errs = [rel(guided_render._PassRender(integrator, sensor, guide).render(
                     scene, sensor, 100 + s, args.spp)) for s in range(args.runs)]
                 ratio = np.array(errs) / np.mean(base)
-                row[f"r{resolution}_f{fraction:g}"] = [float(ratio.mean()),
-                                                       float(ratio.std() / np.sqrt(args.runs))]
+                row[f"r{resolution}_{key}"] = [float(ratio.mean()),
+                                               float(ratio.std() / np.sqrt(args.runs))]
         rows[name] = row
         print(name, row, flush=True)
     return rows
+
+
+def ceiling(args) -> dict:
+    """Relative MSE per sample of guided passes whose field was learnt beforehand (a
+    ``--train``-spp render, its field then frozen) over that of unguided renders, at
+    ``--spp`` samples, ``--runs`` seeds each (mean and standard error): the most that
+    directional guiding with this field can give, training time not counted. 4^3 and 8^3
+    cells, 4 and 16 candidates."""
+    return _frozen_fields(
+        args, SCENES, {"type": "volpath_delta"}, {"guiding": "volumes"}, (4, 8),
+        lambda gr, field: {f"c{c}": gr.GuidedPass(field, True, False, c) for c in (4, 16)})
+
+
+def surface_ceiling(args) -> dict:
+    """``--ceiling --surfaces``: as :func:`ceiling` for ``path_rr``'s histograms on the
+    surface scenes, against unguided ``path_rr``: 8^3 and 16^3 cells, sampled at
+    ``guiding_fraction`` 0.2, 0.5 and 0.8."""
+    plain = {"type": "path_rr", "max_depth": 12}
+    return _frozen_fields(
+        args, SURFACE_SCENES, plain, {"guiding": "surfaces"}, (8, 16),
+        lambda gr, field: {f"f{f:g}": gr.GuidedPass(field, True, False, fraction=f)
+                           for f in (0.2, 0.5, 0.8)}, ref_variant=plain)
 
 
 def sources(res: int = 64, spp: int = 8, runs: int = 16) -> dict:
