@@ -49,13 +49,22 @@ SLOTS = 4
 
 
 def turned(axis: mi.Vector3f, d: mi.Vector3f, n: int) -> list:
-    """``d`` turned about the unit ``axis`` by ``2 pi j / n``, ``j = 1 .. n - 1``."""
+    """``d`` turned about ``axis`` by ``2 pi j / n``, ``j = 1 .. n - 1``, as unit vectors.
+
+    Both are normalised here: ``along`` is quadratic in the axis, so an axis of length
+    ``1 + e`` gives turned directions of length about ``1 + 2e``. The next vertex's
+    incident direction is this one's turned sample, so the error doubled at every guided
+    vertex of a walk. Measured before the fix (the camera inside the cloud, 8 renders of
+    128x128 at 64 spp): 0.15% of guided vertices had directions off unit length by more
+    than 1e-3 and 1 in 70000 by more than 0.5. Such a ray's distances are in the wrong
+    units, and 20 samples came out NaN or Inf (zeroed and counted by the sample guard)."""
+    axis = dr.normalize(axis)
     along = axis * dr.dot(axis, d)
     across, side = d - along, dr.cross(axis, d)
     out = []
     for j in range(1, n):
         c, s = math.cos(2 * math.pi * j / n), math.sin(2 * math.pi * j / n)
-        out.append(along + across * c + side * s)
+        out.append(dr.normalize(along + across * c + side * s))
     return out
 
 
