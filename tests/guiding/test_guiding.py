@@ -206,13 +206,18 @@ CASES = {"dense_ball": _dense_ball, "chromatic_ball": _chromatic_ball, "smoke": 
          "microflake_fog": _microflake_fog, "lamp_under_sky": _lamp_under_sky}
 
 
+def _vectors(a: np.ndarray) -> mi.Vector3f:
+    """A (3, n) array as ``n`` Dr.Jit vectors."""
+    return mi.Vector3f(*(mi.Float(v.astype(np.float32)) for v in a))
+
+
 def test_turned_candidates_keep_the_angle_to_the_axis():
     """Resampling's candidates turned about the incident direction: unit vectors at the
     first one's angle to the axis, evenly around it (their sum is along the axis)."""
     rng = np.random.default_rng(3)
     axis, d = (rng.normal(size=(3, 64)) for _ in range(2))
     axis, d = axis / np.linalg.norm(axis, axis=0), d / np.linalg.norm(d, axis=0)
-    A, D = (mi.Vector3f(*(mi.Float(v.astype(np.float32)) for v in x)) for x in (axis, d))
+    A, D = _vectors(axis), _vectors(d)
     out = [np.array(v).reshape(3, -1) for v in sampling.turned(A, D, 4)]
     for v in out:
         assert np.allclose(np.linalg.norm(v, axis=0), 1.0, atol=1e-5)
@@ -231,9 +236,9 @@ def test_turned_candidates_stay_unit_along_a_walk():
     rng = np.random.default_rng(5)
     n = 256
     axis = rng.normal(size=(3, n))
-    axis = mi.Vector3f(*(mi.Float(v.astype(np.float32)) for v in axis / np.linalg.norm(axis, axis=0)))
+    axis = _vectors(axis / np.linalg.norm(axis, axis=0))
     for step in range(64):
-        jitter = mi.Vector3f(*(mi.Float(v.astype(np.float32)) for v in 0.05 * rng.normal(size=(3, n))))
+        jitter = _vectors(0.05 * rng.normal(size=(3, n)))
         d = dr.normalize(axis + jitter)            # a forward-scattered phase sample
         axis = sampling.turned(axis, d, 4)[step % 3]
         length = np.array(dr.norm(axis))
