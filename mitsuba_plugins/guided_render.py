@@ -47,13 +47,16 @@ class GuidedPass:
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
                  fraction: float = 0.0, roulette: float = 0.0, light=None,
-                 symmetric: bool = False):
+                 symmetric: bool = False, media=None):
         self.field, self.sampling, self.recording = field, sampling, recording
         self.candidates, self.fraction, self.roulette = candidates, fraction, roulette
         self.light = light         # guiding.distance.LightGrid, or None
         # every phase function is symmetric about the incident direction (no microflake):
         # resampling's candidates may be turned about it (guiding.sampling.resample)
         self.symmetric = symmetric
+        # the render's SceneMedia, derived once for all its passes (None: each pass derives
+        # it; reading chromatic extinction back costs a kernel launch and a wait)
+        self.media = media
 
 
 class _PassRender:
@@ -88,18 +91,37 @@ class _PassRender:
 #: guided, 32x32 at 64 spp (the dense family's size) is not.
 MIN_TRAINING_PATHS = 1 << 16
 
+#: paths each pass after the first must trace, per Dr.Jit backend: on a GPU a pass's
+#: paths cost so little that its fixed cost decides. Measured on an NVIDIA H200
+#: (cuda_ad_rgb, the camera inside the cloud at 128x128): a pass costs about 6 ms beside
+#: its paths (tracing in Python, launches, folding records in) against 0.2 ms per sample
+#: per pixel (16,384 paths), so the default schedule of five passes (1, 2, 4, 8, 49 spp at
+#: 64 spp) spent most of a guided render on them: 47 spp in the time unguided rendered 223
+#: (docs/benchmarks.md, "Guiding on a GPU"). From 2^21 paths a pass's paths cost several
+#: times its fixed cost; the LLVM backend (~50x slower per path) needs no floor.
+MIN_PASS_PATHS = {"cuda": 1 << 21, "llvm": 0}
 
-def schedule(spp: int, training: float, pixels: int = 1 << 30) -> list:
+
+def schedule(spp: int, training: float, pixels: int = 1 << 30, min_pass: int = 1) -> list:
     """Sample counts of the passes: doubling training passes, then the rest; ``pixels``:
-    the paths of one sample per pixel (:data:`MIN_TRAINING_PATHS`)."""
+    the paths of one sample per pixel (:data:`MIN_TRAINING_PATHS`). The passes after
+    the first hold at least ``min_pass`` samples per pixel (:data:`MIN_PASS_PATHS`):
+    doubling steps below it merge into one pass, or, where even one such pass does not
+    fit the training budget, the first pass alone trains."""
     if training * spp * pixels < MIN_TRAINING_PATHS:
         return [spp]
     passes, spent, n = [], 0, max(1, spp // 128)
     while spent + n <= training * spp and spent + n < spp:
         passes.append(n)
         spent += n
-        n *= 2
+        n = max(2 * n, min_pass)
     return passes + [spp - spent]
+
+
+def min_pass_spp(pixels: int) -> int:
+    """The ``min_pass`` of :func:`schedule` on this variant's backend."""
+    backend = "cuda" if dr.backend_v(mi.Float) == dr.JitBackend.CUDA else "llvm"
+    return max(1, -(-MIN_PASS_PATHS[backend] // max(pixels, 1)))
 
 
 class GuidingReport:
@@ -111,6 +133,14 @@ class GuidingReport:
         self.light = None      # the light grid learnt (guiding_distance)
 
 
+def _pass_seed(seed, k: int) -> int:
+    """The seed of pass ``k > 0``: TEA of the render's seed and ``k``, on the host where
+    the seed is a Python integer (the vector overload launches a kernel and waits)."""
+    if isinstance(seed, int):
+        return mi.sample_tea_32(seed & 0xFFFFFFFF, k)[0]
+    return int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
+
+
 def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.TensorXf:
     """The guided render (see the module's docstring)."""
     if isinstance(sensor, int):
@@ -119,9 +149,11 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         spp = sensor.sampler().sample_count()
     report = integrator.guiding_report = GuidingReport()
     size = sensor.film().crop_size()
-    plan = schedule(spp, integrator.guiding_training, int(size[0]) * int(size[1]))
+    pixels = int(size[0]) * int(size[1])
+    plan = schedule(spp, integrator.guiding_training, pixels, min_pass_spp(pixels))
     surfaces = integrator.guiding == "surfaces"
-    if (not surfaces and not SceneMedia(scene).any) or len(plan) == 1:
+    media_needs = None if surfaces else SceneMedia(scene)
+    if (not surfaces and not media_needs.any) or len(plan) == 1:
         # nothing to guide (no medium), or too few samples to learn from: one plain pass
         report.passes = [spp]
         return _PassRender(integrator, sensor, None).render(scene, sensor, seed, spp)
@@ -147,9 +179,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                            candidates=getattr(integrator, "guiding_candidates", 1),
                            fraction=getattr(integrator, "guiding_fraction", 0.0),
                            roulette=getattr(integrator, "guiding_roulette", 0.0),
-                           light=light, symmetric=symmetric)
-        pass_seed = seed if k == 0 else \
-            int(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(k))[0][0])
+                           light=light, symmetric=symmetric, media=media_needs)
+        pass_seed = seed if k == 0 else _pass_seed(seed, k)
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)
         if k > 0:        # the first pass only trains (module docstring)
             w = n / (spp - plan[0])

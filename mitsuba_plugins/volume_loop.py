@@ -151,7 +151,9 @@ class VolumetricIntegrator(PathIntegrator):
     shadow_roulette = 0.0
 
     def trace(self, scene, sampler, ray, medium, active, guide=None):
-        media = SceneMedia(scene)  # derived per render: what this scene's kernel needs
+        # derived per render (a guided render's passes share it): what the kernel needs
+        media = guide.media if guide is not None and guide.media is not None else \
+            SceneMedia(scene)
         if not media.any:
             return super().trace(scene, sampler, ray, medium, active)   # nothing to guide
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)

@@ -384,6 +384,37 @@ def test_small_images_render_in_one_plain_pass(monkeypatch):
     assert sum(integrator.guiding_report.passes) == 1024
 
 
+def test_training_passes_merge_where_a_pass_costs_more_than_its_paths():
+    """``schedule``'s floor on the passes after the first (``MIN_PASS_PATHS``, the GPU's):
+    doubling steps below it merge into one pass; where even that does not fit the training
+    budget the first pass alone trains; a floor of 1 keeps the doubling."""
+    schedule = guided_render.schedule
+    assert schedule(64, 0.25, 128 * 128, 1) == [1, 2, 4, 8, 49]
+    assert schedule(64, 0.25, 512 * 512, 8) == [1, 8, 55]
+    assert schedule(64, 0.25, 128 * 128, 128) == [1, 63]
+    assert schedule(1024, 0.25, 128 * 128, 128) == [8, 128, 888]
+    for spp, m in [(64, 3), (256, 8), (1000, 100), (7, 2)]:
+        plan = schedule(spp, 0.25, 1 << 20, m)
+        assert sum(plan) == spp and all(n >= m for n in plan[1:-1]), plan
+    floor = guided_render.MIN_PASS_PATHS["cuda" if mi.variant().startswith("cuda") else "llvm"]
+    assert guided_render.min_pass_spp(128 * 128) == max(1, -(-floor // (128 * 128)))
+
+
+def test_merged_training_passes_estimate_the_same_image(monkeypatch):
+    """A guided render whose training merged into one 8-spp pass after the first (as on a
+    GPU) against unguided ``volpath_delta``, as in the test above."""
+    monkeypatch.setattr(guided_render, "min_pass_spp", lambda pixels: 8)
+    integrator = {**GUIDED, "max_depth": 16}
+    plugin = mi.load_dict(integrator)
+    mi.render(_camera_inside(), integrator=plugin, spp=64, seed=1)
+    assert plugin.guiding_report.passes == [1, 8, 55]
+    a = cached_estimate("guiding-merged:camera_inside", _camera_inside, integrator, passes=8,
+                        spp=64, seed=3000)
+    b = cached_estimate("guiding:camera_inside", _camera_inside,
+                        {"type": "volpath_delta", "max_depth": 16}, passes=16, spp=64)
+    assert_same_expectation(a, b, "guiding-merged-camera_inside")
+
+
 def test_guided_open_furnace():
     """scenes/furnace_env.xml's analytic answer (its header: image mean 0.8), as
     tests/integrators/test_furnace.py checks every integrator."""
