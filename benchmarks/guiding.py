@@ -360,8 +360,22 @@ def ceiling(args) -> dict:
 def surface_ceiling(args) -> dict:
     """``--ceiling --surfaces``: as :func:`ceiling` for ``path_rr``'s histograms on the
     surface scenes, against unguided ``path_rr``: 8^3 and 16^3 cells, sampled at
-    ``guiding_fraction`` 0.2, 0.5 and 0.8."""
+    ``guiding_fraction`` 0.2, 0.5 and 0.8. With ``--bins 16,32,64``: 8^3 cells with
+    that many bins per axis (``guiding_bins``) instead, at fractions 0.2 and 0.5 (keys
+    ``bB_fA``): how much finer directions could give."""
     plain = {"type": "path_rr", "max_depth": 12}
+    if args.bins:
+        rows = {}
+        for bins in (int(b) for b in args.bins.split(",")):
+            part = _frozen_fields(
+                args, SURFACE_SCENES, plain, {"guiding": "surfaces", "guiding_bins": bins},
+                (8,), lambda gr, field: {f"f{f:g}": gr.GuidedPass(field, True, False,
+                                                                  fraction=f)
+                                         for f in (0.2, 0.5)}, ref_variant=plain)
+            for name, row in part.items():
+                rows.setdefault(name, {"set": row["set"], "off": row["off"]}).update(
+                    {f"b{bins}_{k[3:]}": v for k, v in row.items() if k.startswith("r8_")})
+        return rows
     return _frozen_fields(
         args, SURFACE_SCENES, plain, {"guiding": "surfaces"}, (8, 16),
         lambda gr, field: {f"f{f:g}": gr.GuidedPass(field, True, False, fraction=f)
@@ -407,7 +421,8 @@ def ceiling_markdown(result: dict) -> str:
              f"{cfg['runs']} seeds; reference {cfg['ref_spp']} spp. Entries: relMSE of the "
              "guided pass / relMSE of unguided " + ("path_rr" if surfaces else "volpath_delta") +
              " at the same spp (below 1: guiding lowers the variance per sample), +- standard "
-             "error; " + ("rN_fA: N^3 cells, guiding_fraction A" if surfaces else
+             "error; " + ("rN_fA: N^3 cells, guiding_fraction A; bB_fA: 8^3 cells of BxB "
+                          "directional bins" if surfaces else
                           "rN_cM: N^3 cells, M candidates") + ". Training time not counted.", "",
              "| scene | set | off relMSE | " + " | ".join(keys) + " |",
              "|---|---|---|" + "---|" * len(keys)]
@@ -434,6 +449,8 @@ def main() -> None:
     ap.add_argument("--ceiling", action="store_true",
                     help="frozen, well-trained fields against unguided renders at equal spp")
     ap.add_argument("--train", type=int, default=2048, help="--ceiling: training spp")
+    ap.add_argument("--bins", default="", help="--ceiling --surfaces: directional bins per "
+                    "axis to compare (e.g. 16,32,64; 8^3 cells)")
     ap.add_argument("--sources", action="store_true",
                     help="where unguided volpath_delta's squared error lives (prints)")
     args = ap.parse_args()
