@@ -51,6 +51,7 @@ mi.set_variant(VARIANT)
 from mitsuba_plugins import instrument, output  # noqa: E402
 from mitsuba_plugins.tracking.majorant import DEFAULT_RESOLUTION  # noqa: E402
 from mitsuba_plugins.tools import stats  # noqa: E402
+from mitsuba_plugins.validity import take_invalid_samples  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 BUILTIN = {"type": "volpath"}
@@ -296,10 +297,17 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = 
     n = {k: max(1, int(round(spp * per_spp["builtin"] / per_spp[k]))) for k in integ}
     for k, i in integ.items():       # the sample count is a literal of every kernel: compile
         render_variant(scene, i, variant[k], n[k], seed=10 ** 6 + 2)    # at n[k] first
+        take_invalid_samples(i)      # the timed runs' NaN/Inf samples only, below
     times, images = alternate(integ, runs, lambda k, run: render_variant(
         scene, integ[k], variant[k], n[k], seed=run))
     for k in integ:
         assert all(np.isfinite(img).all() for img in images[k]), f"{k}: non-finite pixels"
+    # NaN/Inf samples our plugins zeroed and counted in the timed runs (None: the built-in,
+    # which does not count; its pixels are checked finite above)
+    invalid = {k: take_invalid_samples(i) for k, i in integ.items()}
+    for k, count in invalid.items():
+        if count:
+            print(f"warning: {k}: {count} NaN/Inf samples in {runs} renders", flush=True)
     errors = {k: [stats.rel_mse(img, ref) for img in images[k]] for k in integ}
     out = {}
     for k in integ:
@@ -308,7 +316,8 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = 
             print(f"warning: {k}: render times vary more than 3x: {times[k]}", flush=True)
         out[k] = {"spp": n[k], "median_s": t, "times_s": times[k], "rel_mse": e,
                   "rel_mse_runs": errors[k],
-                  "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k]}
+                  "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k],
+                  "nan_inf_samples": invalid[k]}
     base = out["builtin"]
     for k in variants:
         r = out[k]

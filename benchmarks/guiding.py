@@ -264,6 +264,12 @@ def markdown(result: dict) -> str:
             cells.append(f"{e['efficiency_ratio']:.2f}x [{lo:.2f}, {hi:.2f}], "
                          f"{e['rel_mse_per_sample_ratio']:.2f}/sample, {e['spp']} spp")
         lines.append(f"| {name} | {r['set']} | " + " | ".join(cells) + " |")
+    counts = {c: [r["efficiency"][c].get("nan_inf_samples") for r in result["scenes"].values()]
+              for c in cfg["configs"]}
+    if all(v is not None for vs in counts.values() for v in vs):
+        lines += ["", "NaN/Inf samples (zeroed and counted by the sample guard) in the timed "
+                  "runs, all scenes: " + ", ".join(f"{c} {sum(v)}" for c, v in counts.items())
+                  + "."]
     return "\n".join(lines) + "\n"
 
 
