@@ -55,6 +55,10 @@ CONFIGS = {
     **{f"guided_rr{v:g}": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": v}
        for v in (0.0, 0.1, 0.3, 1.0)},
     # guided distance sampling for next-event estimation (guiding_distance)
+    **{f"guided_l{n}": {"type": "volpath_delta", "guiding": "volumes", "guiding_lobe": n}
+       for n in (0, 1, 2, 3, 4)},
+    **{f"guided_l{n}_c{c}": {"type": "volpath_delta", "guiding": "volumes", "guiding_lobe": n,
+                             "guiding_candidates": c} for n in (1, 2, 4) for c in (2, 3)},
     "guided_nod": {"type": "volpath_delta", "guiding": "volumes", "guiding_distance": False},
     "guided_d_only": {"type": "volpath_delta", "guiding": "volumes", "guiding_roulette": 0.0,
                       "guiding_candidates": 1},

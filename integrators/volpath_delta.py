@@ -104,6 +104,11 @@ class VolpathDelta(VolumetricIntegrator):
        - |int|
        - Phase-function samples among which a guided vertex resamples its direction in
          proportion to the learnt incident radiance, in [1, 32]. (Default: 4)
+     * - guiding_lobe
+       - |int|
+       - More candidates, drawn from the learnt lobe itself, where a cell's lobe is
+         concentrated (weights by the balance heuristic over both densities), in [0,
+         32]. (Default: 1)
      * - guiding_training
        - |float|
        - Largest share of the samples spent in training passes, in [0, 0.9].
@@ -162,7 +167,7 @@ class VolpathDelta(VolumetricIntegrator):
     NAME = "volpath_delta"
     PARAMETERS = ("transmittance", "free_flight", "gradient_estimator", "shadow_roulette",
                   "equiangular", "guiding", "guiding_candidates", "guiding_training",
-                  "guiding_resolution", "guiding_roulette", "guiding_distance")
+                  "guiding_resolution", "guiding_roulette", "guiding_distance", "guiding_lobe")
     RR_MAX_SURVIVAL = 0.99
 
     def configure(self, p):
@@ -177,6 +182,7 @@ class VolpathDelta(VolumetricIntegrator):
         guided_render.configure(self, p, ("volumes",), guided_render.RESOLUTION)
         self.guiding_candidates = p.int("guiding_candidates", guided_render.CANDIDATES, lo=1,
                                         hi=32)
+        self.guiding_lobe = p.int("guiding_lobe", guided_render.LOBE, lo=0, hi=32)
         self.guiding_roulette = p.float("guiding_roulette", guided_render.ROULETTE, lo=0.0,
                                         hi=1.0)
         self.guiding_distance = p.bool("guiding_distance", True)

@@ -37,6 +37,9 @@ VARIANT = mi.variant()
 CANDIDATES = 4
 TRAINING = 0.25
 RESOLUTION = 4
+#: default of volpath_delta's guiding_lobe: resampling candidates drawn from the learnt
+#: distribution itself, beside the phase function's (guiding.sampling.resample)
+LOBE = 1
 #: default of volpath_delta's guiding_roulette (guiding.sampling.roulette)
 ROULETTE = 0.0
 
@@ -47,9 +50,10 @@ class GuidedPass:
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
                  fraction: float = 0.0, roulette: float = 0.0, light=None,
-                 symmetric: bool = False, media=None):
+                 symmetric: bool = False, media=None, lobe: int = 0):
         self.field, self.sampling, self.recording = field, sampling, recording
         self.candidates, self.fraction, self.roulette = candidates, fraction, roulette
+        self.lobe = lobe           # resampling candidates drawn from the field itself
         self.light = light         # guiding.distance.LightGrid, or None
         # every phase function is symmetric about the incident direction (no microflake):
         # resampling's candidates may be turned about it (guiding.sampling.resample)
@@ -177,6 +181,7 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
             report.training_seconds = time.perf_counter() - t0
         guide = GuidedPass(field, sampling=k > 0, recording=not last,
                            candidates=getattr(integrator, "guiding_candidates", 1),
+                           lobe=getattr(integrator, "guiding_lobe", 0),
                            fraction=getattr(integrator, "guiding_fraction", 0.0),
                            roulette=getattr(integrator, "guiding_roulette", 0.0),
                            light=light, symmetric=symmetric, media=media_needs)

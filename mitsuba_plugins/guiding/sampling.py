@@ -20,6 +20,14 @@ incident radiance the weight times what follows varies little, and where ``g`` i
 multiplying into a heavy tail over the tens of vertices of a dense medium (variance 90x
 that of the phase function alone on a dense ball).
 
+Where a cell's lobe is concentrated (:data:`LOBE_KAPPA`), ``guiding_lobe`` more
+candidates are drawn from ``g`` itself, and every candidate weighs ``f g / (M_f p + M_g
+g)`` (resampling with the balance heuristic over its candidates' densities; Talbot et
+al.'s multiple-importance form): phase samples alone seldom reach light that comes from
+outside the phase function's cone, and a lobe's samples bound the weights where ``f``
+is small and ``g`` large. This is still not the one-sample mixture above: the vertex's
+weight is ``sum(w) / g(y)``, not a ratio of two densities at one sample.
+
 The MIS weights of next-event estimation and of emission found by the scattered ray keep
 the phase function's pdf: any weights that sum to one over the two techniques leave the
 sum unbiased, and resampling estimates the emission term's weighted integrand as well as
@@ -68,42 +76,83 @@ def turned(axis: mi.Vector3f, d: mi.Vector3f, n: int) -> list:
     return out
 
 
+#: resampling draws candidates from a cell's lobe (``guiding_lobe``) only where its
+#: concentration ``kappa`` is above this (mean cosine about 0.3). Tuning set, 128x128, 6
+#: renders of 64 spp, one lobe candidate, efficiency over phase candidates alone at
+#: kappa 0 (before the conditional below) / 1 / 2: ``forward_lamp`` 1.19 / 1.34 / 1.30, lamp ball 1.11 / 1.10 / 1.05,
+#: dense ball 0.90 / 0.98 / 0.99, gap room 0.96 / 0.98 / - (flat lobes' samples are
+#: near-uniform directions that add noise to the weights' sum, and their cost)
+LOBE_KAPPA = 1.0
+
+
 def resample(field, phase, phase_ctx, mei, sampler, candidates: int, first, active,
-             symmetric: bool = False):
+             symmetric: bool = False, lobe: int = 0):
     """The guided direction at a medium vertex: ``(y, weight, phase pdf of y, f(y),
     gain)``, ``gain`` the phase function's own weight ``f(y) / p(y)`` over ``weight``
     (1 where not guided: the roulette's ``gain``).
     ``first``: the path's own phase sample ``(wo, weight, pdf)``; the other
     ``candidates - 1`` are ``first`` turned about ``mei.wi`` where ``symmetric`` (every
     phase function of the scene is symmetric about it), else drawn here (``next_1d``,
-    ``next_2d`` each); then ``next_1d`` chooses."""
-    density = field.lookup(field.cell(mei.p), active)
+    ``next_2d`` each); then ``lobe`` candidates are drawn from the cell's learnt
+    distribution ``g`` (``next_2d`` each), and ``next_1d`` chooses.
+
+    With ``M_f = candidates`` phase samples and ``M_g = lobe`` samples of ``g``, candidate
+    ``x`` weighs ``f(x) g(x) / (M_f p(x) + M_g g(x))`` (resampling with the balance
+    heuristic over its candidates' densities: each candidate needs only its own
+    marginal density, so the turned ones may depend on the first), and the path's
+    weight is ``sum(w) / g(y)``. Without ``lobe`` that is the phase-only form above."""
+    cell = field.cell(mei.p)
+    density = field.lookup(cell, active)
     if symmetric:
         samples = [first] + [(wo, first[1], first[2])
                              for wo in turned(mei.wi, first[0], candidates)]
     else:
         us = [(sampler.next_1d(active), sampler.next_2d(active)) for _ in range(candidates - 1)]
         samples = [first] + [phase.sample(phase_ctx, mei, u1, u2, active) for u1, u2 in us]
-    ratios = [mi.Float(dr.mean(mi.Spectrum(w))) for _, w, _ in samples]   # f / p
-    gs = [density(wo) for wo, _, _ in samples]
-    weights = [r * g for r, g in zip(ratios, gs)]
+    # per candidate: direction, f / p (channels averaged), the phase function's pdf p, g
+    cands = [(wo, mi.Float(dr.mean(mi.Spectrum(w))), p, density(wo)) for wo, w, p in samples]
+    if lobe:
+        # only where the cell's lobe is concentrated (LOBE_KAPPA): elsewhere its samples
+        # are near-uniform directions that add noise to the weights' sum (a deterministic
+        # choice per vertex, so the weights stay unbiased)
+        sharp = active & (field.lobe(cell, active)[1] > LOBE_KAPPA)
+        m_g = dr.select(sharp, float(lobe), 0.0)
+    for _ in range(lobe):
+        u = sampler.next_2d(active)
+
+        def drawn(u, sharp):
+            wo = field.sample(cell, u, sharp)
+            f, p = phase.eval_pdf(phase_ctx, mei, wo, sharp)
+            f = mi.Float(dr.mean(mi.Spectrum(f)))
+            return wo, dr.select(sharp & (p > 0), f / p, 0.0), p, density(wo)
+
+        def skipped(u, sharp):
+            return mi.Vector3f(0, 0, 1), mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
+        # a conditional: packets with no such lane skip the sample and the phase call
+        # (the dense ball's 4-spp-trained cells are mostly flat: +2.7% time against +7%)
+        cands.append(dr.if_stmt((u, sharp), sharp, drawn, skipped))
+    if lobe:
+        weights = [r * p * g / dr.maximum(candidates * p + m_g * g, 1e-30)
+                   for _, r, p, g in cands]
+    else:     # the phase-only form, as it was
+        weights = [r * g / candidates for _, r, p, g in cands]
     total = weights[0]
     for w in weights[1:]:
         total = total + w
     target = sampler.next_1d(active) * total
-    y, pdf, ratio, g, running = samples[0][0], samples[0][2], ratios[0], gs[0], weights[0]
-    for (wo, _, p), r, gj, w in zip(samples[1:], ratios[1:], gs[1:], weights[1:]):
+    (y, ratio, pdf, g), running = cands[0], weights[0]
+    for (wo, r, p, gj), w in zip(cands[1:], weights[1:]):
         take = target >= running
         y, pdf = dr.select(take, wo, y), dr.select(take, p, pdf)
         ratio, g = dr.select(take, r, ratio), dr.select(take, gj, g)
         running = running + w
-    weight = dr.select(g > 0, total / (candidates * g), 0.0)
+    weight = dr.select(g > 0, total / g, 0.0)
     # the unguided weight of y over the guided one (roulette's gain)
     gain = dr.select(active & (weight > 0), ratio / weight, 1.0)
     # lanes not guided keep the phase function's own sample
     wo0, weight0, pdf0 = first
     return (dr.select(active, y, wo0), dr.select(active, mi.Spectrum(weight), weight0),
-            dr.select(active, pdf, pdf0), dr.select(active, ratio, ratios[0]) *
+            dr.select(active, pdf, pdf0), dr.select(active, ratio, cands[0][1]) *
             dr.select(active, pdf, pdf0), gain)
 
 
