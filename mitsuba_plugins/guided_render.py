@@ -38,8 +38,13 @@ CANDIDATES = 4
 TRAINING = 0.25
 RESOLUTION = 4
 #: default of volpath_delta's guiding_lobe: resampling candidates drawn from the learnt
-#: distribution itself, beside the phase function's (guiding.sampling.resample)
-LOBE = 1
+#: distribution itself, beside the phase function's (guiding.sampling.resample). 1 won on
+#: the tuning set (forward_lamp 3.08x -> 4.01x against volpath at 64 spp, its heavy tail
+#: gone at 256 spp; the others -3% to +1%) but not on the test set: the cloud 2.79x ->
+#: 2.71x at 64 spp and 2.85x -> 2.84x at 256, the HG 0.9 ball 2.60x -> 2.60x and 2.92x
+#: -> 2.87x (variance per sample -8 to -10%, time per sample +10 to +13%:
+#: docs/benchmarks.md, seventh session). So 0
+LOBE = 0
 #: default of volpath_delta's guiding_roulette (guiding.sampling.roulette)
 ROULETTE = 0.0
 

@@ -293,19 +293,26 @@ def test_resampling_estimates_the_phase_integral(lobe, r, symmetric):
     assert t.pvalue > 1e-3, (estimate.mean(), exact, t)
 
 
-@pytest.mark.parametrize("case", list(CASES))
+#: guided renders of a case's scene with other settings: (scene, settings)
+VARIANTS = {"lobe_candidates": ("lamp_under_sky", {"guiding_lobe": 2})}
+
+
+@pytest.mark.parametrize("case", list(CASES) + list(VARIANTS))
 def test_guided_renders_estimate_the_same_image(case, monkeypatch):
     """Guided (training passes included) against unguided ``volpath_delta``, 8 passes of 64
     spp each against 16 of 64, disjoint seeds; max_depth 16. The camera inside the cloud
     renders with the GPU's schedule (training merged into one 8-spp pass after the first:
-    1, 8, 55 spp), the other cases with the CPU's (1, 2, 4, 8, 49)."""
+    1, 8, 55 spp), the other cases with the CPU's (1, 2, 4, 8, 49). ``lobe_candidates``:
+    resampling also draws 2 candidates from the lobes (15 of the 64 cells concentrated
+    enough after training)."""
     if case == "camera_inside":
         monkeypatch.setattr(guided_render, "min_pass_spp", lambda pixels: 8)
         assert guided_render.schedule(64, guided_render.TRAINING, 32 * 32, 8) == [1, 8, 55]
-    key = f"guiding:{case}"
-    a = cached_estimate(key, CASES[case], {**GUIDED, "max_depth": 16}, passes=8, spp=64,
-                        seed=2000)
-    b = cached_estimate(key, CASES[case], {"type": "volpath_delta", "max_depth": 16},
+    name, settings = VARIANTS.get(case, (case, {}))
+    key = f"guiding:{name}"
+    a = cached_estimate(key, CASES[name], {**GUIDED, "max_depth": 16, **settings}, passes=8,
+                        spp=64, seed=2000)
+    b = cached_estimate(key, CASES[name], {"type": "volpath_delta", "max_depth": 16},
                         passes=16, spp=64)
     assert_same_expectation(a, b, f"guiding-{case}")
 
