@@ -107,7 +107,8 @@ class VolpathDelta(VolumetricIntegrator):
      * - guiding_lobe
        - |int|
        - More candidates, drawn from the learnt lobe itself, where a cell's lobe is
-         concentrated (weights by the balance heuristic over both densities), in [0,
+         concentrated, at a path's first 3 vertices (weights by the balance heuristic
+         over both densities), in [0,
          32]. Pays where light reaches a forward-scattering medium from outside the
          phase function's cone; costs about 10% time per sample elsewhere. (Default: 0)
      * - guiding_training

@@ -43,7 +43,9 @@ RESOLUTION = 4
 #: gone at 256 spp; the others -3% to +1%) but not on the test set: the cloud 2.79x ->
 #: 2.71x at 64 spp and 2.85x -> 2.84x at 256, the HG 0.9 ball 2.60x -> 2.60x and 2.92x
 #: -> 2.87x (variance per sample -8 to -10%, time per sample +10 to +13%:
-#: docs/benchmarks.md, seventh session). So 0
+#: docs/benchmarks.md, seventh session). Only at a path's first 3 vertices
+#: (guiding.sampling.LOBE_DEPTH, chosen on the tuning set after that): the cloud 2.72x ->
+#: 2.71x and 2.91x -> 2.85x, the ball 2.73x -> 2.69x and 2.99x -> 3.01x. So 0
 LOBE = 0
 #: default of volpath_delta's guiding_roulette (guiding.sampling.roulette)
 ROULETTE = 0.0

@@ -355,7 +355,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             wo_phase, phase_weight, phase_pdf_s, f_wo, g = resample(
                 guide.field, phase, phase_ctx, mei, sampler, guide.candidates,
                 (wo_phase, phase_weight, phase_pdf_s),
-                scattered & still_guided(gain), guide.symmetric, guide.lobe)
+                scattered & still_guided(gain), guide.symmetric, guide.lobe, depth)
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(phase_weight))) * phase_pdf_s
         f_l = dr.select(in_medium, mi.Spectrum(phase_val), mi.Spectrum(bsdf_val))

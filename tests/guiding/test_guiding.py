@@ -500,6 +500,7 @@ def test_a_scene_without_media_renders_in_one_pass():
 @pytest.mark.parametrize("name, value, bound", [
     ("guiding", "surfaces", "off | volumes"),
     ("guiding_candidates", 0, "[1, 32]"),
+    ("guiding_lobe", 33, "[0, 32]"),
     ("guiding_training", 0.95, "<= 0.9"),
     ("guiding_resolution", 64, "[1, 32]"),
     ("guiding_roulette", 1.5, "<= 1"),
