@@ -79,9 +79,10 @@ def turned(axis: mi.Vector3f, d: mi.Vector3f, n: int) -> list:
 #: resampling draws candidates from a cell's lobe (``guiding_lobe``) only where its
 #: concentration ``kappa`` is above this (mean cosine about 0.3). Tuning set, 128x128, 6
 #: renders of 64 spp, one lobe candidate, efficiency over phase candidates alone at
-#: kappa 0 (before the conditional below) / 1 / 2: ``forward_lamp`` 1.19 / 1.34 / 1.30, lamp ball 1.11 / 1.10 / 1.05,
-#: dense ball 0.90 / 0.98 / 0.99, gap room 0.96 / 0.98 / - (flat lobes' samples are
-#: near-uniform directions that add noise to the weights' sum, and their cost)
+#: kappa 0 (before the conditional below) / 1 / 2: ``forward_lamp`` 1.19 / 1.34 / 1.30,
+#: lamp ball 1.11 / 1.10 / 1.05, dense ball 0.90 / 0.98 / 0.99, gap room 0.96 / 0.98 / -
+#: (flat lobes' samples are near-uniform directions that add noise to the weights' sum,
+#: and their cost)
 LOBE_KAPPA = 1.0
 #: ... and only at a path's first this many real vertices (``depth``): where its
 #: throughput is largest; later vertices paid the draws' time for little (tuning set,

@@ -84,17 +84,24 @@ def test_histogram_pdf_is_the_density_of_its_samples(bins):
     _assert_density_of_samples(field, cell=3, mass=_histogram_mass)
 
 
+def _sphere_midpoints(nz: int, nphi: int):
+    """``(Z, P, dirs)``: the midpoints of an ``nz x nphi`` grid of equal-area (z, phi)
+    bins over the sphere, as arrays and as Dr.Jit directions (z-major)."""
+    z = -1 + 2 * (np.arange(nz) + 0.5) / nz
+    phi = 2 * np.pi * (np.arange(nphi) + 0.5) / nphi
+    Z, P = np.meshgrid(z, phi, indexing="ij")
+    s = np.sqrt(1 - Z * Z)
+    dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
+                         (s * np.cos(P), s * np.sin(P), Z)))
+    return Z, P, dirs
+
+
 def _histogram_mass(field, cell, nz, nphi):
     """The exact probability of each of the test's ``nz x nphi`` (z, phi) bins under a
     histogram field's pdf, evaluated at its bins' centres: the density is constant on
     each of its bins, and solid angle is area in (z, phi)."""
     n = field.bins
-    zc = -1 + 2 * (np.arange(n) + 0.5) / n
-    pc = 2 * np.pi * (np.arange(n) + 0.5) / n
-    Z, P = np.meshgrid(zc, pc, indexing="ij")
-    s = np.sqrt(1 - Z * Z)
-    dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
-                         (s * np.cos(P), s * np.sin(P), Z)))
+    Z, _, dirs = _sphere_midpoints(n, n)
     density = np.array(field.pdf(mi.UInt32(np.full(Z.size, cell, np.uint32)), dirs)).reshape(n, n)
 
     def overlap(edges_a, edges_b):
@@ -109,12 +116,7 @@ def _histogram_mass(field, cell, nz, nphi):
 def _quadrature_mass(field, cell, nz, nphi):
     """The pdf integrated over each test bin by 16 x 16 midpoints (smooth pdfs)."""
     m = 16
-    z = -1 + 2 * (np.arange(nz * m) + 0.5) / (nz * m)
-    p = 2 * np.pi * (np.arange(nphi * m) + 0.5) / (nphi * m)
-    Z, P = np.meshgrid(z, p, indexing="ij")
-    s = np.sqrt(1 - Z * Z)
-    dirs = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
-                         (s * np.cos(P), s * np.sin(P), Z)))
+    Z, _, dirs = _sphere_midpoints(nz * m, nphi * m)
     pdf = np.array(field.pdf(mi.UInt32(np.full(Z.size, cell, np.uint32)), dirs)).reshape(Z.shape)
     return (pdf * 4 * np.pi / Z.size).reshape(nz, m, nphi, m).sum(axis=(1, 3)).ravel()
 
@@ -279,13 +281,7 @@ def test_resampling_estimates_the_phase_integral(lobe, r, symmetric):
     assert np.allclose(np.array(f), np.array(mi.Spectrum(value)).reshape(-1, n)[0], rtol=1e-4)
     assert np.allclose(np.array(pdf), np.array(p_y), rtol=1e-4)
     estimate = np.array(mi.Spectrum(weight)).reshape(-1, n)[0] * np.array(h(y))
-    nz, nphi = 1024, 2048
-    z = -1 + 2 * (np.arange(nz) + 0.5) / nz
-    phi = 2 * np.pi * (np.arange(nphi) + 0.5) / nphi
-    Z, P = np.meshgrid(z, phi, indexing="ij")
-    s = np.sqrt(1 - Z * Z)
-    d = mi.Vector3f(*(mi.Float(v.ravel().astype(np.float32)) for v in
-                      (s * np.cos(P), s * np.sin(P), Z)))
+    Z, _, d = _sphere_midpoints(1024, 2048)
     f_d = np.array(mi.Spectrum(phase.eval_pdf(ctx, vertices(Z.size), d)[0])).reshape(-1, Z.size)[0]
     exact = float(np.sum(f_d * np.array(h(d)), dtype=np.float64)) * 4 * np.pi / Z.size
     assert np.all(np.isfinite(estimate))
