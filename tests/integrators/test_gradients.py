@@ -636,15 +636,22 @@ def test_auto_resolves_by_the_scene_media(flags, expected):
     assert [resolve(name, media) for name in ("drt", "delta", "sm")] == ["drt", "delta", "sm"]
 
 
-def test_sample_matching_on_mitsubas_heterogeneous_medium(tmp_path):
-    """Mitsuba's ``heterogeneous`` medium: our tracker treats it as chromatic where a
-    spectrum has several channels, so ``auto`` is ``drt`` there and ``sm`` is refused in
-    one line; in mono it is gray, ``auto`` is ``sm`` and its gradient is finite."""
+@pytest.mark.parametrize("channels", [1, 3])
+def test_sample_matching_on_mitsubas_heterogeneous_medium(tmp_path, channels):
+    """Mitsuba's ``heterogeneous`` medium declares spectral extinction. With a
+    one-channel ``sigma_t`` grid its extinction is gray all the same (Mitsuba broadcasts
+    the channel; ``trackers.gray_extinction``), so ``auto`` is ``sm`` in every variant and
+    the gradient is finite (its agreement with finite differences: ``test_mitsuba_media``,
+    ``test_mitsuba_ad_configurations``). With three channels, where a spectrum has
+    several, our tracker treats it as chromatic: ``auto`` is ``drt`` and ``sm`` is
+    refused in one line."""
     from mitsuba_plugins.grids import gridio
     from mitsuba_plugins.tracking.empty_scatter import resolve
     from mitsuba_plugins.tracking.scene_media import SceneMedia
     path = str(tmp_path / "g.vol")
-    gridio.write_vol(path, np.full((8, 8, 8, 1), 1.5, np.float32))
+    values = np.full((8, 8, 8, channels), 1.5, np.float32)
+    values[..., -1] *= 0.5          # chromatic where there are several channels
+    gridio.write_vol(path, values)
     to_world = mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)
     scene = media_scene({"type": "heterogeneous", "albedo": 0.8, "scale": 2.0,
                          "sigma_t": {"type": "gridvolume", "filename": path,
@@ -652,7 +659,7 @@ def test_sample_matching_on_mitsubas_heterogeneous_medium(tmp_path):
     params = mi.traverse(scene)
     key = f"{GRID}.sigma_t.data"
     integrator = mi.load_dict({"type": "volpath_delta", "gradient_estimator": "sm"})
-    if dr.size_v(mi.Spectrum) > 1:
+    if channels > 1 and dr.size_v(mi.Spectrum) > 1:
         assert resolve("auto", SceneMedia(scene)) == "drt"
         with pytest.raises(Exception) as info:
             _differentiate(scene, params, key, integrator, "backward")
