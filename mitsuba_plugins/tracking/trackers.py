@@ -164,7 +164,7 @@ def gray_extinction(medium: mi.Medium) -> bool:
     """Whether Mitsuba's ``heterogeneous`` medium has the same extinction in every channel
     although it declares spectral extinction (its default): its ``sigma_t`` is one
     channel, a float or a one-channel ``gridvolume``, which Mitsuba broadcasts to every
-    channel and wavelength, and ``scale`` is a float. Read from ``mi.traverse`` (no
+    channel and wavelength (its ``scale`` is always one float). Read from ``mi.traverse`` (no
     kernel), at each render: an edit cannot change a texture's channel count. Such a
     medium then takes the gray kernels (no spectral MIS over the channels) and
     ``gradient_estimator = "sm"``; Mitsuba's ``volume_optimization`` tutorial is one."""
@@ -225,7 +225,7 @@ def checked_majorant(medium: mi.Medium, bbox=None) -> float:
         mi.Log(mi.LogLevel.Warn,
                f"mitsuba_plugins: {medium.class_name()}'s majorant {reported:g} is below its "
                f"extinction {probed:g} (seen at sampled points and wavelengths); tracking "
-               f"uses {probed * (1 + PROBE_SLACK):g} (Mitsuba's volpath with this medium is "
+               f"uses {value:g} (Mitsuba's volpath with this medium is "
                "biased)")
     return value
 
