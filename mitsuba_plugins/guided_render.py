@@ -174,7 +174,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
         GuidingField(bounds, integrator.guiding_resolution)
     media = scene_media(scene)
     light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds),
-                               lamp_boxes=distance.lamps(scene, bounds, boxes=True)) \
+                               lamp_boxes=distance.lamps(scene, bounds, boxes=True),
+                               phase_g=distance.common_hg(media)) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
         distance.worthwhile(media, bounds) else None
     symmetric = not any(mi.has_flag(m.phase_function().flags(),

@@ -51,6 +51,10 @@ UNKNOWN = -1.0
 LAMP_SHARE = 0.5
 #: at most this many such lights (more: none; the density's cost grows with each)
 MAX_LAMPS = 4
+#: equal pieces in angle of :class:`PhaseLampSegment`'s density, and the floor of a
+#: piece's weight as a share of the largest
+LAMP_PIECES = 4
+LAMP_FLOOR = 1e-3
 #: a shape emitter counts as small when its bounds' largest side is below this share of
 #: the guided box's smallest side
 SMALL_LAMP = 0.1
@@ -130,6 +134,22 @@ def lamps(scene: mi.Scene, bbox, boxes: bool = False) -> list:
             for _, b in found if b is not None]
 
 
+def common_hg(media: list):
+    """The asymmetry ``g`` shared by every medium's phase function where each is
+    Henyey-Greenstein (isotropic: 0), else None (host side, once per render)."""
+    gs = set()
+    for medium in media:
+        phase = medium.phase_function()
+        name = phase.class_name()
+        if name == "IsotropicPhaseFunction":
+            gs.add(0.0)
+        elif name == "HGPhaseFunction":
+            gs.add(round(float(np.array(mi.traverse(phase)["g"]).ravel()[0]), 6))
+        else:
+            return None
+    return gs.pop() if len(gs) == 1 else None
+
+
 def learning(guide) -> bool:
     """Whether a pass records what next-event estimation gathers into the light grid."""
     return guide is not None and guide.recording and guide.light is not None
@@ -140,7 +160,11 @@ class LightGrid:
     medium points that fell in it (channels averaged), learnt between passes."""
 
     def __init__(self, bbox, resolution: int = RESOLUTION, lamps: list = (),
-                 lamp_boxes: list = ()):
+                 lamp_boxes: list = (), phase_g=None):
+        # the Henyey-Greenstein asymmetry every medium shares (:func:`common_hg`; None or
+        # 0: the lamps' components are plain equiangular); opaque: another g compiles
+        # nothing new
+        self.phase_g = dr.opaque(mi.Float, phase_g) if phase_g else None
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
         self.lo, self.inv_size = grid_box(bbox)
@@ -235,7 +259,10 @@ class Segment:
         self.Z = total
         self.valid = active & (self.h > 0) & (sigma > 0) & (total > 0) & dr.isfinite(total)
         # toward the small lights in a medium: equiangular components, LAMP_SHARE in all
-        self.lamps = [equiangular.Segment(ray, t_end, p) for p in grid.lamps]
+        # (weighted by the phase function toward the lamp where it is forward- or
+        # back-scattering: PhaseLampSegment)
+        self.lamps = [equiangular.Segment(ray, t_end, p) if grid.phase_g is None
+                      else PhaseLampSegment(ray, t_end, p, grid.phase_g) for p in grid.lamps]
         self.share = LAMP_SHARE if self.lamps else 0.0
 
     def pdf(self, t: mi.Float) -> mi.Float:
@@ -282,6 +309,83 @@ class Segment:
         span = 1.0 - dr.exp(-self.sigma * (b - a))
         t = a - dr.log(dr.maximum(1.0 - v * span, 1e-30)) / self.sigma
         return dr.clip(t, a, b)
+
+
+class PhaseLampSegment:
+    """The equiangular density toward a lamp at ``p`` times the phase function toward it:
+    along the ray, next-event estimation's contribution at ``ray(t)`` goes as the inverse
+    squared distance to the lamp (which equiangular sampling follows) times the phase
+    function's value between the ray's direction and the lamp's. In equiangular
+    coordinates (``t = Delta + D tan(theta)``, ``theta`` in ``[theta_a, theta_b]``) the
+    cosine between the incident direction ``-ray.d`` and the lamp's is ``sin(theta)``, so a
+    Henyey-Greenstein phase function of asymmetry ``g`` weighs
+    ``(1 + g^2 + 2 g sin(theta))^(-3/2)``: 343x between its ends at ``g`` = 0.75, which
+    plain equiangular sampling spreads evenly. The density is piecewise constant in
+    ``theta`` over :data:`LAMP_PIECES` equal pieces, each weighted by that factor at its
+    middle (at least :data:`LAMP_FLOOR` of the largest): exact for what it samples, and
+    positive on the whole segment (Georgiev et al. 2013, "Joint importance sampling of
+    low-order volumetric scattering", sample this product too).
+
+    Measured (128x128, 8 alternating renders of 64 spp, guided renders, efficiency over
+    plain equiangular components): the tuning set's ``forward_lamp`` (HG 0.75) 4 / 8 / 16
+    pieces 1.165 / 1.170 / 1.180 in a first version (two sincos per segment, an arctangent
+    in ``pdf``; time +5 / +6 / +9%), so 4; with the transmittance to the lamp in the
+    weights too, the same variance for 3% more time. This version: ``forward_lamp`` 1.169
+    (relMSE 0.82x, time +4%); the test set's camera inside the cloud (HG 0.6) 1.048
+    (relMSE 0.91x, time +4.5%); isotropic media (the lamp ball) keep plain equiangular."""
+
+    def __init__(self, ray: mi.Ray3f, t_end: mi.Float, p: mi.Point3f, g: float):
+        self.delta = dr.dot(p - ray.o, ray.d)
+        self.D = dr.maximum(dr.norm(p - ray(self.delta)), equiangular.MIN_DISTANCE)
+        self.theta_a = dr.atan2(-self.delta, self.D)
+        self.theta_b = dr.atan2(dr.minimum(t_end, 1e30) - self.delta, self.D)
+        self.width = (self.theta_b - self.theta_a) / LAMP_PIECES
+        # sines and cosines of the pieces' ends and middles by rotations from theta_a
+        # (whose sine and cosine the geometry gives): one sincos per segment, and the
+        # pieces' ends as distances (pdf finds a piece without an arctangent)
+        r_a = dr.rsqrt(dr.square(self.delta) + dr.square(self.D))
+        s, c = -self.delta * r_a, self.D * r_a
+        hs, hc = dr.sincos(0.5 * self.width)
+        w, self.ends = [], []
+        for k in range(LAMP_PIECES):
+            if k:
+                self.ends.append(dr.fma(self.D, s / c, self.delta))
+            ms, mc = dr.fma(s, hc, c * hs), dr.fma(c, hc, -s * hs)      # the middle
+            x = (1.0 + g * g) + (2.0 * g) * ms
+            w.append(dr.rsqrt(x) / x)
+            s, c = dr.fma(ms, hc, mc * hs), dr.fma(mc, hc, -ms * hs)    # the next end
+        top = w[0]
+        for x in w[1:]:
+            top = dr.maximum(top, x)
+        self.w = [dr.maximum(x, LAMP_FLOOR * top) for x in w]
+        Z = self.w[0]
+        for x in self.w[1:]:
+            Z = Z + x
+        self.Z = Z
+
+    def sample(self, u):
+        """A distance: a piece in proportion to its weight, an angle uniform within it."""
+        target = u * self.Z
+        w, before, k = self.w[0], mi.Float(0.0), mi.Float(0.0)
+        running = self.w[0]
+        for j in range(1, LAMP_PIECES):
+            take = target >= running
+            w = dr.select(take, self.w[j], w)
+            before = dr.select(take, running, before)
+            k = dr.select(take, float(j), k)
+            running = running + self.w[j]
+        v = dr.clip((target - before) / dr.maximum(w, 1e-30), 0.0, 1.0)
+        th = self.theta_a + (k + v) * self.width
+        return self.delta + self.D * dr.tan(th)
+
+    def pdf(self, t: mi.Float) -> mi.Float:
+        """The density of ``t``: the piece's share over its width in ``theta``, times
+        ``d theta / d t = D / (D^2 + (t - Delta)^2)``."""
+        w = self.w[0]
+        for end, x in zip(self.ends, self.w[1:]):
+            w = dr.select(t >= end, x, w)
+        pdf = w / (self.Z * self.width) * self.D / (dr.square(self.D) + dr.square(t - self.delta))
+        return dr.select(self.width > 0, pdf, 0.0)
 
 
 class Point:

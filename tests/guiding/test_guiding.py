@@ -21,6 +21,7 @@ from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import GuidingField, HistogramField, media_bounds
+from mitsuba_plugins.tracking import equiangular
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
 
@@ -313,17 +314,20 @@ def test_guided_renders_estimate_the_same_image(case, monkeypatch):
     assert_same_expectation(a, b, f"guiding-{case}")
 
 
-@pytest.mark.parametrize("t_end, lamps", [
-    (0.7, ()), (3.0, ()), (math.inf, ()),
-    (3.0, ([0.1, 0.3, 0.1],)), (math.inf, ([0.1, 0.3, 0.1], [0.9, 0.2, -0.5]))])
-def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps):
+@pytest.mark.parametrize("t_end, lamps, g", [
+    (0.7, (), None), (3.0, (), None), (math.inf, (), None),
+    (3.0, ([0.1, 0.3, 0.1],), None), (math.inf, ([0.1, 0.3, 0.1], [0.9, 0.2, -0.5]), None),
+    (3.0, ([0.1, 0.3, 0.1],), 0.75), (math.inf, ([0.1, 0.3, 0.1], [0.9, 0.2, -0.5]), -0.5),
+    (0.7, ([0.1, 0.3, 0.1],), 0.95)])
+def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps, g):
     """Guided distances along a segment (a light grid of random cell values, some 0, some
-    not yet learnt; with lamps, the equiangular components toward them too): chi-square
+    not yet learnt; with lamps, the equiangular components toward them too, weighted by a
+    Henyey-Greenstein phase function of asymmetry ``g`` where it is given): chi-square
     test (alpha 1e-3) of 2^18 samples over 40 bins of [0, min(t_end, 4)] and the tail
-    beyond, against the pdf integrated over each bin (64 midpoints per bin); the pdf
+    beyond, against the pdf integrated over each bin (1024 midpoints per bin); the pdf
     integrates to 1."""
     grid = LightGrid(mi.ScalarBoundingBox3f([-1, -1, -1], [1, 1, 1]), resolution=4,
-                     lamps=list(lamps))
+                     lamps=list(lamps), phase_g=g)
     rng = np.random.default_rng(3)
     values = rng.random(grid.cells) * (rng.random(grid.cells) > 0.3)
     values[rng.random(grid.cells) < 0.2] = distance.UNKNOWN      # cells not yet learnt
@@ -337,9 +341,12 @@ def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps):
     assert np.all((t >= 0) & (t <= t_end))
     top = min(t_end, 4.0)
     edges = np.linspace(0.0, top, 41)
-    mids = (edges[:-1, None] + (np.arange(64) + 0.5)[None, :] / 64 * (top / 40)).ravel()
+    # 1024 midpoints per bin: the phase-weighted lamp components jump at their pieces'
+    # ends, next to equiangular's peak (64 midpoints missed a bin's mass by 2%)
+    m = 1024
+    mids = (edges[:-1, None] + (np.arange(m) + 0.5)[None, :] / m * (top / 40)).ravel()
     pdf = np.array(seg.pdf(mi.Float(mids.astype(np.float32))))
-    mass = pdf.reshape(40, 64).mean(axis=1) * (top / 40)
+    mass = pdf.reshape(40, m).mean(axis=1) * (top / 40)
     mass = np.append(mass, max(0.0, 1.0 - mass.sum()))
     assert mass[:-1].sum() <= 1.0 + 2e-3
     if t_end <= 4.0:
@@ -349,6 +356,45 @@ def test_distance_pdf_is_the_density_of_its_samples(t_end, lamps):
     expected = mass[keep] / mass[keep].sum() * observed[keep].sum()
     chi2 = float(((observed[keep] - expected) ** 2 / expected).sum())
     assert scipy_stats.chi2.sf(chi2, keep.sum() - 1) > 1e-3, chi2
+
+
+def test_phase_weighted_lamp_density_follows_the_phase_function():
+    """``PhaseLampSegment``: along a ray that passes a lamp, the density of the lamp's
+    component over plain equiangular sampling's is the Henyey-Greenstein value toward the
+    lamp (up to one constant and the piecewise-constant steps): with g = 0.75 the points
+    before the closest approach (the lamp ahead, forward scattering) are drawn far more
+    often than those after it; with g = -0.75 the other way round."""
+    ray = mi.Ray3f(mi.Point3f(-2.0, 0.0, 0.0), mi.Vector3f(1.0, 0.0, 0.0))
+    lamp, t_end, D = mi.Point3f(0.0, 0.3, 0.0), mi.Float(4.0), 0.3
+    plain = equiangular.Segment(ray, t_end, lamp)
+    # the middles of the pieces in angle (closest approach at t = 2)
+    a, b = math.atan2(-2.0, D), math.atan2(2.0, D)
+    theta = a + (np.arange(distance.LAMP_PIECES) + 0.5) * (b - a) / distance.LAMP_PIECES
+    t = 2.0 + D * np.tan(theta)
+    for g in (0.75, -0.75):
+        seg = distance.PhaseLampSegment(ray, t_end, lamp, mi.Float(g))
+        ratio = np.array(seg.pdf(mi.Float(t))) / np.array(plain.pdf(mi.Float(t)))
+        # HG toward the lamp: the cosine between -d and the lamp's direction is sin(theta)
+        hg = (1 - g * g) / (4 * np.pi * (1 + g * g + 2 * g * np.sin(theta)) ** 1.5)
+        rel = ratio / hg
+        assert rel.max() / rel.min() == pytest.approx(1.0, abs=1e-3), (g, rel)
+        ahead = float(np.array(seg.pdf(mi.Float(1.0)))[0] / np.array(seg.pdf(mi.Float(3.0)))[0])
+        assert ahead > 10 if g > 0 else ahead < 0.1, (g, ahead)
+
+
+def test_common_hg_is_the_asymmetry_every_medium_shares():
+    """``distance.common_hg``: one HG medium gives its g, an isotropic one 0, two HG media
+    of different g or a medium whose phase function is not HG (SGGX) give None."""
+    def media(*phases):
+        return [mi.load_dict({"type": "homogeneous", "phase": ph}) for ph in phases]
+    hg = {"type": "hg", "g": 0.6}
+    assert distance.common_hg(media(hg)) == pytest.approx(0.6)
+    assert distance.common_hg(media(hg, dict(hg))) == pytest.approx(0.6)
+    assert distance.common_hg(media({"type": "isotropic"})) == 0.0
+    assert distance.common_hg(media(hg, {"type": "hg", "g": 0.3})) is None
+    sggx = {"type": "sggx", "S": {"type": "gridvolume", "grid": mi.VolumeGrid(
+        np.array([1.0, 0.2, 0.5, 0.1, 0.0, 0.0], np.float32).reshape(1, 1, 1, 6))}}
+    assert distance.common_hg(media(sggx)) is None
 
 
 def test_lamps_are_small_lights_inside_a_medium():
