@@ -11,7 +11,8 @@ test set reports them.
 
 * tuning: a dense gray ball under a small light (sigma_t 20, albedo 0.95, HG 0.5), a fog
   room lit through a hole in one wall (camera inside the fog), a fog ball holding a small
-  lamp, a cube of forward-scattering fog (HG 0.75) holding a small lamp;
+  lamp, a cube of forward-scattering fog (HG 0.75) holding a small lamp, a cube of
+  forward-scattering fog (HG 0.85) under a small light outside it;
 * test: the smooth smoke of scenes/smoke.xml under its area light, a camera inside a
   forward-scattering cloud (HG 0.6), a strongly forward-scattering ball (HG 0.9), a dense
   chromatic ball under an environment.
@@ -223,12 +224,23 @@ def forward_lamp(res: int) -> mi.Scene:
     return mi.load_dict(scene)
 
 
+def forward_outside(res: int) -> mi.Scene:
+    """A cube of forward-scattering fog (sigma_t 2, albedo 0.9, HG g 0.85) under the
+    small light of ``media_scene`` outside it, the camera outside (tuning: a light outside
+    a forward-scattering medium, for the phase-weighted distances toward it)."""
+    scene = media_scene(sensor=camera(res), env=0, as_dict=True, extra={
+        "fog": {"type": "cube", "bsdf": {"type": "null"},
+                "interior": homogeneous(2.0, albedo=0.9, g=0.85)}})
+    return mi.load_dict(scene)
+
+
 SCENES = {
     "dense_ball": ("tuning", lambda res: media_scene(homogeneous(20.0, albedo=0.95, g=0.5),
                                                      sensor=camera(res), env=0)),
     "gap_room": ("tuning", gap_room),
     "lamp_ball": ("tuning", lamp_ball),
     "forward_lamp": ("tuning", forward_lamp),
+    "forward_outside": ("tuning", forward_outside),
     "smoke": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "smoke.xml"),
                                                res=str(res))),
     "camera_inside": ("test", _inside),

@@ -173,9 +173,10 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     field = HistogramField(bounds, integrator.guiding_resolution, bins) if bins else \
         GuidingField(bounds, integrator.guiding_resolution)
     media = scene_media(scene)
-    light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds),
+    g = distance.common_hg(media) or None
+    light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds, outside=g is not None),
                                lamp_boxes=distance.lamps(scene, bounds, boxes=True),
-                               phase_g=distance.common_hg(media)) \
+                               phase_g=g) \
         if getattr(integrator, "guiding_distance", False) and not surfaces and \
         distance.worthwhile(media, bounds) else None
     symmetric = not any(mi.has_flag(m.phase_function().flags(),

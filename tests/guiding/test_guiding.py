@@ -400,8 +400,9 @@ def test_common_hg_is_the_asymmetry_every_medium_shares():
 def test_lamps_are_small_lights_inside_a_medium():
     """``distance.lamps``: a small sphere light and a point light inside a fog ball are
     found (their centres); the same light outside the ball, a large one inside it, or
-    more than MAX_LAMPS are not."""
-    def scene(center, radius, point=None, n=1):
+    more than MAX_LAMPS are not. With ``outside`` (an anisotropic phase function), lights
+    outside the ball below SMALL_OUTSIDE_LAMP of its size count too, never as boxes."""
+    def scene(center, radius, point=None, n=1, **kw):
         d = media_scene(homogeneous(1.0), env=0, as_dict=True)
         for i in range(n):
             d[f"light{i}"] = {"type": "sphere", "center": [center[0], center[1] + 0.01 * i,
@@ -411,13 +412,19 @@ def test_lamps_are_small_lights_inside_a_medium():
         if point is not None:
             d["point"] = {"type": "point", "position": point}
         s = mi.load_dict(d)
-        return distance.lamps(s, media_bounds(s))
+        return distance.lamps(s, media_bounds(s), **kw)
     assert scene([0.2, 0.1, 0.0], 0.05) == [pytest.approx([0.2, 0.1, 0.0], abs=1e-5)]
     assert scene([0.2, 3.0, 0.0], 0.05) == []
     assert scene([0.2, 0.1, 0.0], 0.5) == []
     assert scene([0.2, 3.0, 0.0], 0.05, point=[0.0, -0.3, 0.2]) == \
         [pytest.approx([0.0, -0.3, 0.2], abs=1e-5)]
     assert scene([0.2, 0.1, 0.0], 0.02, n=distance.MAX_LAMPS + 1) == []
+    # outside: the media_scene's light (radius 0.25, the ball's side 2: below 0.5 x 2)
+    assert scene([1.6, 2.2, 1.2], 0.25, outside=True) == \
+        [pytest.approx([1.6, 2.2, 1.2], abs=1e-5)]
+    assert scene([1.6, 2.2, 1.2], 0.6, outside=True) == []
+    assert scene([1.6, 2.2, 1.2], 0.25, outside=True, boxes=True) == []
+    assert len(scene([0.2, 0.1, 0.0], 0.05, outside=True, boxes=True)) == 1
 
 
 def test_lamp_boxes_hold_the_lamps_that_are_shapes():
