@@ -236,6 +236,20 @@ class LightGrid:
         dr.scatter_reduce(dr.ReduceOp.Add, self.acc[1], mi.Float(1.0), cell, ok)
 
 
+def pick_piece(masses: list, target: mi.Float) -> tuple:
+    """The piece of a piecewise density whose cumulative mass range holds ``target`` (in
+    ``[0, sum(masses))``): ``(index as a float, its mass, the mass before it)``."""
+    k, mass, before = mi.Float(0.0), masses[0], mi.Float(0.0)
+    running = masses[0]
+    for j in range(1, len(masses)):
+        take = target >= running
+        mass = dr.select(take, masses[j], mass)
+        before = dr.select(take, running, before)
+        k = dr.select(take, float(j), k)
+        running = running + masses[j]
+    return k, mass, before
+
+
 class Segment:
     """The guided density over ``[0, t_end]`` of ``ray`` (unit direction) in a medium of
     gray extinction ``sigma``: ``sigma exp(-sigma t) D_k / Z`` on piece ``k``; pieces of
@@ -300,14 +314,8 @@ class Segment:
 
     def _sample_learnt(self, u: mi.Float) -> mi.Float:
         target = u * self.Z
-        mass, before, a = self.mass[0], mi.Float(0.0), mi.Float(0.0)
-        running = self.mass[0]
-        for k in range(1, PIECES):
-            take = target >= running
-            mass = dr.select(take, self.mass[k], mass)
-            before = dr.select(take, running, before)
-            a = dr.select(take, k * self.h, a)
-            running = running + self.mass[k]
+        k, mass, before = pick_piece(self.mass, target)
+        a = k * self.h
         last = a >= (PIECES - 1) * self.h
         b = dr.select(last, self.t_end, a + self.h)
         # within the piece: the exponential truncated to [a, b]
@@ -380,14 +388,7 @@ class PhaseLampSegment:
     def sample(self, u):
         """A distance: a piece in proportion to its weight, an angle uniform within it."""
         target = u * self.Z
-        w, before, k = self.w[0], mi.Float(0.0), mi.Float(0.0)
-        running = self.w[0]
-        for j in range(1, LAMP_PIECES):
-            take = target >= running
-            w = dr.select(take, self.w[j], w)
-            before = dr.select(take, running, before)
-            k = dr.select(take, float(j), k)
-            running = running + self.w[j]
+        k, w, before = pick_piece(self.w, target)
         v = dr.clip((target - before) / dr.maximum(w, 1e-30), 0.0, 1.0)
         th = self.theta_a + (k + v) * self.width
         return self.delta + self.D * dr.tan(th)
