@@ -325,7 +325,7 @@ class Segment:
         return dr.clip(t, a, b)
 
 
-class PhaseLampSegment:
+class PhaseLampSegment(equiangular.Segment):
     """The equiangular density toward a lamp at ``p`` times the phase function toward it:
     along the ray, next-event estimation's contribution at ``ray(t)`` goes as the inverse
     squared distance to the lamp (which equiangular sampling follows) times the phase
@@ -357,10 +357,7 @@ class PhaseLampSegment:
     anisotropic phase function."""
 
     def __init__(self, ray: mi.Ray3f, t_end: mi.Float, p: mi.Point3f, g: float):
-        self.delta = dr.dot(p - ray.o, ray.d)
-        self.D = dr.maximum(dr.norm(p - ray(self.delta)), equiangular.MIN_DISTANCE)
-        self.theta_a = dr.atan2(-self.delta, self.D)
-        self.theta_b = dr.atan2(dr.minimum(t_end, 1e30) - self.delta, self.D)
+        super().__init__(ray, t_end, p)     # Delta, D, theta_a, theta_b
         self.width = (self.theta_b - self.theta_a) / LAMP_PIECES
         # sines and cosines of the pieces' ends and middles by rotations from theta_a
         # (whose sine and cosine the geometry gives): one sincos per segment, and the
@@ -385,7 +382,7 @@ class PhaseLampSegment:
             Z = Z + x
         self.Z = Z
 
-    def sample(self, u):
+    def sample(self, u: mi.Float) -> mi.Float:
         """A distance: a piece in proportion to its weight, an angle uniform within it."""
         target = u * self.Z
         k, w, before = pick_piece(self.w, target)
