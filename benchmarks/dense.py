@@ -12,9 +12,11 @@ default) and rr_depth 5.
    time per sample of each measured, then volpath renders ``--spp`` and each variant of
    ours the spp that takes as long; ``--runs`` alternating renders each, seeds 0..runs-1.
    relMSE (docs/method.md section 1) against a reference (:data:`REFERENCE`, ``--ref-spp``;
-   its own noise adds the same expected error to both sides, so ratios are conservative);
-   efficiency = 1 / (mean relMSE x median time). The 90% interval of each ratio is a
-   bootstrap over the runs (both sides resampled).
+   its own noise adds the same expected error to both sides, so ratios are conservative;
+   given the reference as a ``stats.Estimate`` (:func:`reference_estimate`, as
+   ``benchmarks.guiding`` does), that error, ``compare.reference_floor``, is subtracted,
+   and the raw figures are kept beside); efficiency = 1 / (mean relMSE x median time).
+   The 90% interval of each ratio is a bootstrap over the runs (both sides resampled).
 2. ``profile``: per camera path, counted in our kernels (``instrument.counting``):
    ray intersections, shadow rays, medium and surface vertices, null collisions in
    flights and tentative collisions on shadow rays (each is one density lookup; real
@@ -51,6 +53,7 @@ mi.set_variant(VARIANT)
 from mitsuba_plugins import instrument, output  # noqa: E402
 from mitsuba_plugins.tracking.majorant import DEFAULT_RESOLUTION  # noqa: E402
 from mitsuba_plugins.tools import stats  # noqa: E402
+from mitsuba_plugins.tools.compare import reference_floor  # noqa: E402
 from mitsuba_plugins.validity import take_invalid_samples  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,11 +221,18 @@ def scene(case: Case, res: int, tmp: Path, extra: dict | None = None) -> mi.Scen
 
 
 # -- measurements -----------------------------------------------------------------------------
-def reference(scene, spp: int, variant: dict = REFERENCE, seed: int = 7 * 10 ** 6) -> np.ndarray:
+def reference_estimate(scene, spp: int, variant: dict = REFERENCE,
+                       seed: int = 7 * 10 ** 6) -> stats.Estimate:
+    """The reference: the mean of renders of 256 spp (seeds ``seed + i``), with its
+    per-pixel standard error from their spread (infinite with a single render)."""
     integ = integrator(variant)
     chunk = min(spp, 256)
-    return np.mean([timed_render(scene, integ, chunk, seed=seed + i)[1]
-                    for i in range(max(1, spp // chunk))], axis=0)
+    return stats.Estimate.from_passes([timed_render(scene, integ, chunk, seed=seed + i)[1]
+                                       for i in range(max(1, spp // chunk))], chunk)
+
+
+def reference(scene, spp: int, variant: dict = REFERENCE, seed: int = 7 * 10 ** 6) -> np.ndarray:
+    return reference_estimate(scene, spp, variant, seed).mean
 
 
 def bias(scene, variants: dict, spp: int, ref) -> dict:
@@ -308,20 +318,28 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = 
     for k, count in invalid.items():
         if count:
             print(f"warning: {k}: {count} NaN/Inf samples in {runs} renders", flush=True)
-    errors = {k: [stats.rel_mse(img, ref) for img in images[k]] for k in integ}
+    # against a stats.Estimate of several renders: its own relative MSE subtracted
+    # (compare.reference_floor, as `mitsuba-plugins compare` does), the raw figure beside it
+    mean = ref.mean if isinstance(ref, stats.Estimate) else ref
+    floor = reference_floor(ref) if isinstance(ref, stats.Estimate) and ref.passes > 1 else None
+    raw = {k: [stats.rel_mse(img, mean) for img in images[k]] for k in integ}
+    errors = {k: [e - (floor or 0.0) for e in raw[k]] for k in integ}
     out = {}
     for k in integ:
         t, e = statistics.median(times[k]), float(np.mean(errors[k]))
         if max(times[k]) > 3 * min(times[k]):
             print(f"warning: {k}: render times vary more than 3x: {times[k]}", flush=True)
         out[k] = {"spp": n[k], "median_s": t, "times_s": times[k], "rel_mse": e,
-                  "rel_mse_runs": errors[k],
+                  "rel_mse_runs": errors[k], "reference_floor": floor,
+                  "rel_mse_raw": float(np.mean(raw[k])),
                   "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k],
                   "nan_inf_samples": invalid[k]}
     base = out["builtin"]
     for k in variants:
         r = out[k]
         r["efficiency_ratio"] = r["efficiency"] / base["efficiency"]
+        r["efficiency_ratio_raw"] = (base["rel_mse_raw"] * base["median_s"]) / \
+            (r["rel_mse_raw"] * r["median_s"])
         lo, hi = bootstrap_ratio(r["rel_mse_runs"], base["rel_mse_runs"])
         scale = base["median_s"] / r["median_s"]
         r["efficiency_ratio_90"] = [lo * scale, hi * scale]

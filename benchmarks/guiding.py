@@ -269,7 +269,11 @@ def markdown(result: dict) -> str:
              f"(volpath; path for surfaces) at {cfg['spp']} spp, {cfg['runs']} alternating runs, reference {cfg['ref_spp']} "
              "spp. Efficiency ratio: ours / the built-in at equal time (90% bootstrap "
              "interval); relMSE/sample: ours / the built-in per sample (below 1: less "
-             "variance).", "",
+             "variance). relMSE less the reference's own (`compare.reference_floor`: its "
+             "standard error from the spread of its 256-spp renders), as `mitsuba-plugins "
+             "compare` and docs/method.md section 1 define it; `raw`: the efficiency ratio "
+             "with the reference's noise left in, as these tables reported until "
+             "2026-11-27 (it lowers the estimator with less variance most).", "",
              "| scene | set | " + " | ".join(cfg["configs"]) + " |",
              "|---|---|" + "---|" * len(cfg["configs"])]
     for name, r in result["scenes"].items():
@@ -277,7 +281,8 @@ def markdown(result: dict) -> str:
         for c in cfg["configs"]:
             e = r["efficiency"][c]
             lo, hi = e["efficiency_ratio_90"]
-            cells.append(f"{e['efficiency_ratio']:.2f}x [{lo:.2f}, {hi:.2f}], "
+            raw = f" (raw {e['efficiency_ratio_raw']:.2f}x)" if "efficiency_ratio_raw" in e else ""
+            cells.append(f"{e['efficiency_ratio']:.2f}x [{lo:.2f}, {hi:.2f}]{raw}, "
                          f"{e['rel_mse_per_sample_ratio']:.2f}/sample, {e['spp']} spp")
         lines.append(f"| {name} | {r['set']} | " + " | ".join(cells) + " |")
     counts = {c: [r["efficiency"][c].get("nan_inf_samples") for r in result["scenes"].values()]
@@ -511,10 +516,10 @@ def main() -> None:
         scene = make(args.res)
         if args.surfaces:
             builtin = {"type": "path", "max_depth": 12}
-            ref = dense.reference(scene, args.ref_spp, builtin)
+            ref = dense.reference_estimate(scene, args.ref_spp, builtin)
             eff = dense.equal_time(scene, configs, args.spp, args.runs, ref, builtin)
         else:
-            ref = dense.reference(scene, args.ref_spp)
+            ref = dense.reference_estimate(scene, args.ref_spp)
             eff = dense.equal_time(scene, configs, args.spp, args.runs, ref)
         for k in configs:
             eff[k]["rel_mse_per_sample_ratio"] = (eff[k]["rel_mse"] * eff[k]["spp"]) / \

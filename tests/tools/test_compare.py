@@ -222,3 +222,22 @@ def test_compare_writes_every_file_or_none(equal_time, tmp_path, monkeypatch):
                 Path(tmp).write_text("half")
                 raise RuntimeError("disk full")
     assert not (tmp_path / "a.md").exists() and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_reference_floor_removes_the_references_own_noise():
+    """An image of relative variance 1e-3 per pixel against a reference averaged from 32
+    renders of relative variance 0.02 each (its mean's: 6.25e-4). The raw relMSE carries
+    the reference's noise (+62%); less ``reference_floor`` it is the image's own. Tolerance:
+    5 standard errors of the mean over 10^5 pixels (a pixel's squared error is a scaled
+    chi-square of one degree: standard deviation sqrt(2) (1e-3 + 6.25e-4)), 3.6e-5,
+    against a floor of 6.25e-4."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.5, 2.0, 100_000)
+    ref = stats.Estimate.from_passes(
+        truth * (1 + math.sqrt(0.02) * rng.standard_normal((32, truth.size))), 256)
+    image = truth * (1 + math.sqrt(1e-3) * rng.standard_normal(truth.size))
+    want = float(np.mean(1e-3 * truth ** 2 / (truth ** 2 + stats.REL_MSE_EPS)))
+    raw = stats.rel_mse(image, ref.mean)
+    tol = 5 * math.sqrt(2) * (1e-3 + 6.25e-4) / math.sqrt(truth.size)
+    assert abs(raw - reference_floor(ref) - want) < tol, (raw, reference_floor(ref), want)
+    assert raw - want > 10 * tol          # uncorrected, the test above would fail
