@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_plugins.guiding.field import cell_index, grid_box, grid_cell
+from mitsuba_plugins.guiding.field import cell_index, grid_box, grid_cell, packed
 from mitsuba_plugins.tracking import equiangular
 
 #: cells per axis of the light grid
@@ -189,12 +189,14 @@ class LightGrid:
     def _upload(self, mean: np.ndarray) -> None:
         """``mean``: per cell, the mean estimate, or :data:`UNKNOWN`."""
         self.mean = mi.Float(mean.astype(np.float32))
-        self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(2)]
-        dr.eval(self.mean, *self.acc)
+        # per cell: the sum of the values and the count, next to each other (one packet
+        # scatter per record, field.ACC_STRIDE)
+        self.acc = dr.zeros(mi.Float, 2 * self.cells)
+        dr.eval(self.mean, self.acc)
 
     def update(self) -> int:
         """Fold the last pass's records in; returns the cells with a value."""
-        self.sums += np.stack([np.array(a, np.float64) for a in self.acc], axis=1)
+        self.sums += np.array(self.acc, np.float64).reshape(self.cells, 2)
         value, n = self.sums[:, 0], self.sums[:, 1]
         known = (n >= MIN_RECORDS) & np.isfinite(value)
         self._upload(np.where(known, value / np.where(n > 0, n, 1.0), UNKNOWN))
@@ -232,8 +234,7 @@ class LightGrid:
         value = mi.Float(dr.mean(mi.Spectrum(contribution)))
         ok = active & dr.isfinite(value) & (value >= 0)
         cell = self.cell(p)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.acc[0], value, cell, ok)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.acc[1], mi.Float(1.0), cell, ok)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(value, 1.0, stride=2), cell, ok)
 
 
 def pick_piece(masses: list, target: mi.Float) -> tuple:

@@ -59,10 +59,12 @@ MAX_BYTES = 64 << 20
 
 def field_bytes(resolution: int, bins: int = 0) -> int:
     """Bytes of a field of ``resolution^3`` cells: per cell a lobe (4 floats), its fluence,
-    5 accumulators and a record count on the device, 5 sums and a count on the host;
+    :data:`ACC_STRIDE` accumulators (5 sums, a record count, 2 unused) on the device, 5
+    sums and a count on the host;
     with ``bins`` (:class:`HistogramField`) ``bins^2`` bins of 3 floats on the device
     (probability, cumulative, accumulator) and a double on the host."""
-    return resolution ** 3 * (4 * 4 + 4 + 5 * 4 + 4 + 5 * 8 + 8 + bins * bins * (3 * 4 + 8))
+    return resolution ** 3 * (4 * 4 + 4 + ACC_STRIDE * 4 + 5 * 8 + 8 +
+                              bins * bins * (3 * 4 + 8))
 
 
 def check_memory(resolution: int, bins: int = 0) -> None:
@@ -73,7 +75,7 @@ def check_memory(resolution: int, bins: int = 0) -> None:
         raise ValueError(
             f"guiding_resolution = {resolution} and guiding_bins = {bins}: the field "
             f"would take {total / 2**20:.0f} MiB; allowed: at most {MAX_BYTES >> 20} MiB "
-            "(resolution^3 x (92 + bins^2 x 20) bytes)")
+            "(resolution^3 x (100 + bins^2 x 20) bytes)")
 
 
 def grid_box(bbox) -> tuple:
@@ -94,6 +96,27 @@ def cell_index(x: mi.Vector3f, r: int) -> mi.UInt32:
     """The cell of an ``r^3`` grid at ``x`` in cell units (clamped to the grid)."""
     i = mi.Vector3i(dr.clip(mi.Vector3i(dr.floor(x)), 0, r - 1))
     return mi.UInt32((i.z * r + i.y) * r + i.x)
+
+
+#: floats per cell of the records' accumulators, one array (``GuidingField.acc``): W, Vx,
+#: Vy, Vz, N, the records' count and two unused. A power of two, so that Dr.Jit's LLVM
+#: backend adds a record with one packet scatter (``JitFlag.PacketOps``) instead of one
+#: scatter per sum (with the light grid's pairs, ``distance.LightGrid.acc``: the camera
+#: inside the cloud's training passes of 16 and 32 spp at 128x128 took 0.25 and 0.50 s
+#: against 0.29 and 0.58 s, its guided render of 256 spp 3.74-3.81 s against 3.93 s).
+#: The count is a float: exact to 2^24 per pass and thread, and it only decides whether
+#: a cell has :data:`MIN_RECORDS`.
+ACC_STRIDE = 8
+
+
+def packed(*values, stride: int = ACC_STRIDE) -> mi.ArrayXf:
+    """``values`` (Floats or Python numbers) as one record of ``stride`` floats (a power
+    of two), zero-padded, for a packet ``dr.scatter_reduce`` at a cell's index."""
+    width = dr.width(next((v for v in values if isinstance(v, mi.Float)), mi.Float(0)))
+    out = dr.zeros(mi.ArrayXf, (stride, width))
+    for j, v in enumerate(values):
+        out[j] = v
+    return out
 
 
 def concentration(r: np.ndarray) -> np.ndarray:
@@ -131,15 +154,15 @@ class GuidingField:
         self.norm = mi.Float(((1.0 - UNIFORM) * norm).astype(np.float32))
         self.fluence = mi.Float((np.zeros(self.cells) if fluence is None else fluence)
                                 .astype(np.float32))
-        self.acc = [dr.zeros(mi.Float, self.cells) for _ in range(5)]
-        self.acc_records = dr.zeros(mi.UInt32, self.cells)
-        dr.eval(*self.mu, self.kappa, self.norm, self.fluence, *self.acc, self.acc_records)
+        self.acc = dr.zeros(mi.Float, self.cells * ACC_STRIDE)     # record's accumulators
+        dr.eval(*self.mu, self.kappa, self.norm, self.fluence, self.acc)
 
     def update(self) -> int:
         """Fold the records of the last pass into the lobes (host side, between passes);
         returns how many cells have a lobe now."""
-        self.sums += np.stack([np.array(a, np.float64) for a in self.acc], axis=1)
-        self.records += np.array(self.acc_records, np.int64)
+        acc = np.array(self.acc, np.float64).reshape(self.cells, ACC_STRIDE)
+        self.sums += acc[:, :5]
+        self.records += np.rint(acc[:, 5]).astype(np.int64)
         W, V, N = self.sums[:, 0], self.sums[:, 1:4], self.sums[:, 4]
         length = np.linalg.norm(V, axis=1)
         known = (self.records >= MIN_RECORDS) & (W > 0) & np.isfinite(W) & (N > 0)
@@ -203,10 +226,8 @@ class GuidingField:
         """Add ``value`` (``Li / p`` of one vertex along ``d``, times ``weight``: the
         vertices the record stands for) to ``cell``'s sums, and ``weight`` to its count."""
         ok = active & dr.isfinite(value) & (value >= 0)
-        for acc, v in zip(self.acc, (value, value * d.x, value * d.y, value * d.z,
-                                     mi.Float(weight))):
-            dr.scatter_reduce(dr.ReduceOp.Add, acc, v, cell, ok)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.acc_records, mi.UInt32(1), cell, ok)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(
+            value, value * d.x, value * d.y, value * d.z, weight, 1.0), cell, ok)
 
     def describe(self) -> str:
         return f"{self.resolution}^3 cells x one vMF lobe, {self.memory() / 2**20:.2f} MiB"

@@ -20,7 +20,7 @@ from helpers import (assert_mean_equals, assert_same_expectation, cached_estimat
 from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
-from mitsuba_plugins.guiding.field import GuidingField, HistogramField, media_bounds
+from mitsuba_plugins.guiding.field import ACC_STRIDE, GuidingField, HistogramField, media_bounds
 from mitsuba_plugins.tracking import equiangular
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
@@ -48,6 +48,14 @@ def _guide_small_images(monkeypatch):
     monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", 0)
 
 
+def _accumulate(field, sums, records):
+    """As if a pass had recorded ``sums`` (5 x cells: W, Vx, Vy, Vz, N) and ``records``
+    vertices per cell into ``field``'s accumulators (``field.ACC_STRIDE`` per cell)."""
+    acc = np.zeros((field.cells, ACC_STRIDE), np.float32)
+    acc[:, :5], acc[:, 5] = np.asarray(sums).T, records
+    field.acc = mi.Float(acc.ravel())
+
+
 def _field_with_lobe(mu, r, records=1000):
     """A 2^3 field whose cell 0 has the lobe of mean cosine ``r`` around ``mu``."""
     field = GuidingField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2)
@@ -55,8 +63,7 @@ def _field_with_lobe(mu, r, records=1000):
     sums[0, 0] = 1.0
     sums[1:4, 0] = r * np.asarray(mu) / np.linalg.norm(mu)
     sums[4, 0] = records
-    field.acc = [mi.Float(s.astype(np.float32)) for s in sums]
-    field.acc_records = mi.UInt32(np.full(field.cells, records, np.uint32))
+    _accumulate(field, sums, records)
     assert field.update() == (1 if r > 0 else 0)
     return field
 
@@ -79,8 +86,7 @@ def test_histogram_pdf_is_the_density_of_its_samples(bins):
     weights = rng.gamma(0.5, size=(field.cells, field.size)) * \
         (rng.random((field.cells, field.size)) > 0.2)
     field.acc_hist = mi.Float(weights.ravel().astype(np.float32))
-    field.acc = [mi.Float(np.full(field.cells, v, np.float32)) for v in (1, 0.3, 0, 0, 100)]
-    field.acc_records = mi.UInt32(np.full(field.cells, 100, np.uint32))
+    _accumulate(field, np.array([1, 0.3, 0, 0, 100])[:, None].repeat(field.cells, 1), 100)
     assert field.update() == field.cells
     _assert_density_of_samples(field, cell=3, mass=_histogram_mass)
 
