@@ -272,8 +272,8 @@ def markdown(result: dict) -> str:
              "variance). relMSE less the reference's own (`compare.reference_floor`: its "
              "standard error from the spread of its 256-spp renders), as `mitsuba-plugins "
              "compare` and docs/method.md section 1 define it; `raw`: the efficiency ratio "
-             "with the reference's noise left in, as these tables reported until "
-             "2026-11-27 (it lowers the estimator with less variance most).", "",
+             "with the reference's noise left in, as the tables of earlier sessions "
+             "reported (it lowers the estimator with less variance most).", "",
              "| scene | set | " + " | ".join(cfg["configs"]) + " |",
              "|---|---|" + "---|" * len(cfg["configs"])]
     for name, r in result["scenes"].items():
