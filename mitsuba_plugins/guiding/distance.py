@@ -24,6 +24,8 @@ the vertex's code running on every SIMD lane anyway. Exact and unbiased for any 
 """
 from __future__ import annotations
 
+import functools
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -261,9 +263,7 @@ class Segment:
         self.sigma, self.t_end = sigma, t_end
         self.h = dr.minimum(t_end, MAX_OPTICAL_DEPTH / dr.maximum(sigma, 1e-30)) / PIECES
         D = grid.values_along(ray, self.h, PIECES, active)
-        top = D[0]
-        for d in D[1:]:
-            top = dr.maximum(top, d)
+        top = functools.reduce(dr.maximum, D)
         # nothing learnt along the segment: the exponential truncated to it; cells not yet
         # learnt (UNKNOWN, below 0) as the brightest known one
         self.D = [dr.select(top > 0, dr.select(d < 0, top, dr.maximum(d, DEFENSIVE * top)),
@@ -274,10 +274,7 @@ class Segment:
             decay.append(decay[-1] * step)
         decay.append(dr.exp(-sigma * t_end))
         self.mass = [d * (a - b) for d, a, b in zip(self.D, decay[:-1], decay[1:])]
-        total = self.mass[0]
-        for m in self.mass[1:]:
-            total = total + m
-        self.Z = total
+        self.Z = total = sum(self.mass[1:], self.mass[0])
         self.valid = active & (self.h > 0) & (sigma > 0) & (total > 0) & dr.isfinite(total)
         # toward the small lights in a medium: equiangular components, LAMP_SHARE in all
         # (weighted by the phase function toward the lamp where it is forward- or
@@ -374,14 +371,9 @@ class PhaseLampSegment(equiangular.Segment):
             x = (1.0 + g * g) + (2.0 * g) * ms
             w.append(dr.rsqrt(x) / x)
             s, c = dr.fma(ms, hc, mc * hs), dr.fma(mc, hc, -ms * hs)    # the next end
-        top = w[0]
-        for x in w[1:]:
-            top = dr.maximum(top, x)
+        top = functools.reduce(dr.maximum, w)
         self.w = [dr.maximum(x, LAMP_FLOOR * top) for x in w]
-        Z = self.w[0]
-        for x in self.w[1:]:
-            Z = Z + x
-        self.Z = Z
+        self.Z = sum(self.w[1:], self.w[0])
 
     def sample(self, u: mi.Float) -> mi.Float:
         """A distance: a piece in proportion to its weight, an angle uniform within it."""
