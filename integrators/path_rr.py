@@ -54,7 +54,9 @@ class PathRR(PathIntegrator):
        - Path guiding at surfaces (docs/method.md section 13): ``off``, or ``surfaces``:
          at surfaces without delta or transmissive lobes, directions from a one-sample MIS
          mixture of the BSDF and a field learnt during the render (a grid of cells, one
-         directional histogram each), within one ``mi.render`` call. (Default: ``off``)
+         directional histogram each), within one ``mi.render`` call; unguided after the
+         first pass where it finds under 0.3 of the light beyond the paths' first direct
+         light (docs/method.md section 13). (Default: ``off``)
      * - guiding_fraction
        - |float|
        - Probability of sampling the learnt distribution where a cell has one, in

@@ -99,7 +99,8 @@ class VolpathDelta(VolumetricIntegrator):
          directions in media resampled among phase-function samples in proportion to a
          field learnt during the render (a grid of cells, one von Mises-Fisher lobe
          each), within one ``mi.render`` call (training passes, then the rest of the
-         samples guided). Primal renders only. (Default: ``off``)
+         samples guided; unguided where the first pass finds under 0.3 of the light
+         beyond the paths' first direct light). Primal renders only. (Default: ``off``)
      * - guiding_candidates
        - |int|
        - Phase-function samples among which a guided vertex resamples its direction in

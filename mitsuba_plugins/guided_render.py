@@ -5,6 +5,8 @@
 The schedule: training passes of doubling sample counts (from ``spp / 128``, at least 1)
 while their sum stays within ``guiding_training`` of ``spp``, then one pass with the rest;
 one plain pass where that training budget is below :data:`MIN_TRAINING_PATHS` paths.
+Where the first pass finds that little of the light lies beyond the paths' first vertex's
+direct light (:data:`MIN_SHARE`), the rest of the samples are one plain pass.
 The first pass samples the phase function (or BSDF) alone; every pass records its medium
 (or surface) vertices into the field except the last; the field is fixed within a pass (folded in between), so
 each pass is an unbiased estimate. The guided passes are combined in proportion to their
@@ -113,6 +115,19 @@ MIN_TRAINING_PATHS = 1 << 16
 MIN_PASS_PATHS = {"cuda": 1 << 21, "llvm": 0}
 
 
+#: the share of a path's light that guided directions can change, below which a render
+#: goes on unguided after its first pass: what the paths of that pass gathered beyond
+#: their first vertex's direct light (its emitter sample and whatever its sampled
+#: direction hit directly), over all they gathered (``GuidingField.flow``). Guiding
+#: changes only that share; if its variance went with its light, even a guide that
+#: removed all of it would not pay back a guided pass's extra time per sample c below a
+#: share of 1 - 1/c. c = 1.42, the median over the volume tuning set (guided spp against
+#: unguided in the same time, docs/benchmarks.md), gives 0.3. Measured shares (128x128,
+#: first pass): volume tuning set 0.37 (forward_lamp) to 0.81 (dense ball), none skipped;
+#: surfaces' tuning room 1.0.
+MIN_SHARE = 0.3
+
+
 def schedule(spp: int, training: float, pixels: int = 1 << 30, min_pass: int = 1) -> list:
     """Sample counts of the passes: doubling training passes, then the rest; ``pixels``:
     the paths of one sample per pixel (:data:`MIN_TRAINING_PATHS`). The passes after
@@ -140,6 +155,9 @@ class GuidingReport:
 
     def __init__(self):
         self.passes, self.training_seconds, self.cells_guided, self.memory = [], 0.0, 0, 0
+        # the first pass's share of light beyond the first vertex's direct light
+        # (:data:`MIN_SHARE`), and whether the render went on unguided for it
+        self.share, self.skipped = None, False
         self.field = None      # the field learnt (None without training passes)
         self.light = None      # the light grid learnt (guiding_distance)
 
@@ -183,17 +201,18 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                                     mi.PhaseFunctionFlags.Microflake) for m in media)
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light
-    image, t0 = None, time.perf_counter()
-    for k, n in enumerate(plan):
-        last = k == len(plan) - 1
+    image, t0, k = None, time.perf_counter(), 0
+    while k < len(plan):
+        n, last = plan[k], k == len(plan) - 1
         if last:
             report.training_seconds = time.perf_counter() - t0
-        guide = GuidedPass(field, sampling=k > 0, recording=not last,
-                           candidates=getattr(integrator, "guiding_candidates", 1),
-                           lobe=getattr(integrator, "guiding_lobe", 0),
-                           fraction=getattr(integrator, "guiding_fraction", 0.0),
-                           roulette=getattr(integrator, "guiding_roulette", 0.0),
-                           light=light, symmetric=symmetric, media=media_needs)
+        guide = None if report.skipped else \
+            GuidedPass(field, sampling=k > 0, recording=not last,
+                       candidates=getattr(integrator, "guiding_candidates", 1),
+                       lobe=getattr(integrator, "guiding_lobe", 0),
+                       fraction=getattr(integrator, "guiding_fraction", 0.0),
+                       roulette=getattr(integrator, "guiding_roulette", 0.0),
+                       light=light, symmetric=symmetric, media=media_needs)
         pass_seed = seed if k == 0 else _pass_seed(seed, k)
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)
         if k > 0:        # the first pass only trains (module docstring)
@@ -205,6 +224,11 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
             if light is not None:
                 light.update()
         report.passes.append(n)
+        if k == 0:
+            report.share = field.flow[0] / field.flow[1] if field.flow[1] > 0 else 0.0
+            if report.share < MIN_SHARE:       # guiding cannot pay: the rest unguided
+                report.skipped, plan = True, [n, spp - n]
+        k += 1
     return image
 
 

@@ -136,11 +136,12 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
                 sampler.next_1d(), u2, guidable & still_guided(gain))
         elif dr.hint(recording, mode="scalar"):
             f_wo = mi.Float(dr.mean(mi.Spectrum(bsdf_weight))) * bs.pdf
-        L[active_em] = dr.fma(beta, emitter_contribution(integrator.mis, si, ds, em_weight, wo,
-                                                         bsdf_val, p_b), L)
+        L_pre = L
+        L = dr.select(active_em, dr.fma(beta, emitter_contribution(
+            integrator.mis, si, ds, em_weight, wo, bsdf_val, p_b), L), L)
         if dr.hint(recording, mode="scalar"):
             records = records.add(guide.field, si.p, si.to_world(bs.wo), L, beta, f_wo,
-                                  sampler.next_1d(), guidable)
+                                  sampler.next_1d(), guidable, L_pre)
 
         # ------------------------- throughput update -------------------------
         bsdf_weight = si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)

@@ -363,7 +363,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         if dr.hint(lamp_nee, mode="scalar"):   # MIS weight 1 toward a lamp
             p_dir = dr.select(at_point & guide.light.on_lamp(ds.p), 0.0, p_dir)
         nee = emitter_contribution(integrator.mis, si, ds, em_weight * T, wo, f_l, p_dir)
-        L[active_em] = dr.fma(nee_beta, nee, L)
+        L_pre = L
+        L = dr.select(active_em, dr.fma(nee_beta, nee, L), L)
         if dr.hint(gd, mode="scalar"):
             # a segment that passed through the medium gathered light: the pixel saw it
             valid_ray |= at_point
@@ -388,7 +389,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
         if dr.hint(recording, mode="scalar"):
             records = records.add(guide.field, mei.p, wo_phase, L, beta, f_wo,
-                                  sampler.next_1d(), scattered & active_next)
+                                  sampler.next_1d(), scattered & active_next, L_pre)
 
         # ------------------------- throughput update -------------------------
         null = on_surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)

@@ -208,7 +208,7 @@ def roulette(field, threshold: float, ref: mi.Float, p: mi.Point3f, beta: mi.Spe
 
 
 def _fields():
-    out = {"next": mi.UInt32}
+    out = {"next": mi.UInt32, "first_cell": mi.UInt32, "first_L": mi.Float}
     for k in range(SLOTS):
         out.update({f"cell{k}": mi.UInt32, f"d{k}": mi.Vector3f, f"valid{k}": mi.Bool,
                     f"L{k}": mi.Spectrum, f"w{k}": mi.Spectrum})
@@ -216,11 +216,13 @@ def _fields():
 
 
 class Records:
-    """The ring of the last :data:`SLOTS` medium vertices of each path."""
+    """The ring of the last :data:`SLOTS` medium vertices of each path, and where its
+    first vertex lay and what it had gathered there (:meth:`GuidingField.record_flow`)."""
     DRJIT_STRUCT = _fields()
 
     def __init__(self):
         self.next = mi.UInt32(0)
+        self.first_cell, self.first_L = mi.UInt32(0), mi.Float(0.0)
         for k in range(SLOTS):
             setattr(self, f"cell{k}", mi.UInt32(0))
             setattr(self, f"d{k}", mi.Vector3f(0.0))
@@ -235,13 +237,17 @@ class Records:
         return dr.mean((L - L_then) * w)
 
     def add(self, field, p: mi.Point3f, wo: mi.Vector3f, L: mi.Spectrum, beta: mi.Spectrum,
-            f_wo: mi.Float, u: mi.Float, active: mi.Bool) -> "Records":
+            f_wo: mi.Float, u: mi.Float, active: mi.Bool, L_pre: mi.Spectrum) -> "Records":
         """The ``active`` medium vertices (before their throughput takes the sampled
         direction's weight) enter the reservoir: the ``n``-th vertex of a path replaces
         slot ``floor(u n)`` where that is below :data:`SLOTS` (reservoir sampling: every
-        vertex of the path ends up in it with probability ``SLOTS / n``)."""
+        vertex of the path ends up in it with probability ``SLOTS / n``). ``L_pre``: the
+        path's light before this vertex's emitter sample; at a path's second vertex, what
+        its first vertex's emitter sample and sampled direction found directly."""
         cell = field.cell(p)
         w = mi.Spectrum(dr.select(beta * f_wo > 0, dr.rcp(beta * f_wo), 0.0))
+        self.first_cell[active & (self.next == 0)] = cell
+        self.first_L[active & (self.next == 1)] = dr.mean(L_pre)
         self.next[active] += 1
         slot = dr.select(self.next <= SLOTS, self.next - 1,
                          mi.UInt32(dr.floor(u * mi.Float(self.next))))
@@ -257,7 +263,12 @@ class Records:
     def flush(self, field, L: mi.Spectrum, active) -> None:
         """At the end of the paths: every slot adds what came after its vertex, times
         ``n / SLOTS`` where the path had ``n > SLOTS`` vertices (the inverse of the
-        probability that the reservoir kept it)."""
+        probability that the reservoir kept it). Each path with a vertex adds the light
+        it gathered beyond its first vertex's direct light (from its second vertex on),
+        and all its light, to :meth:`GuidingField.record_flow`."""
+        total = mi.Float(dr.mean(L))
+        direct = dr.select(self.next >= 2, self.first_L, total)
+        field.record_flow(self.first_cell, total - direct, total, active & (self.next > 0))
         scale = dr.maximum(mi.Float(self.next) / SLOTS, 1.0)
         for k in range(SLOTS):
             field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"),
