@@ -504,7 +504,8 @@ def test_the_first_pass_measures_the_light_beyond_direct_light():
 def test_guiding_goes_on_unguided_where_it_cannot_pay():
     """Below ``MIN_SHARE`` (the Cornell box, lit mostly directly: 0.26 at 128x128) a
     guided render's first pass is followed by one plain pass of the other samples, whose
-    image it returns; the fog ball (0.52) is guided."""
+    image it returns; the fog ball (0.52) is guided (on CUDA its passes merge to the same
+    two counts, ``MIN_PASS_PATHS``: ``skipped`` tells them apart)."""
     key, make = loaded("cornell_box")
     integrator = mi.load_dict({"type": "path_rr", "guiding": "surfaces"})
     image = render(make(), integrator, spp=256, seed=3)
@@ -515,7 +516,7 @@ def test_guiding_goes_on_unguided_where_it_cannot_pay():
     assert abs(image.mean() / plain.mean() - 1) < 0.02
     integrator = mi.load_dict(GUIDED)
     mi.render(_fog_ball(), integrator=integrator, spp=256, seed=3)
-    assert not integrator.guiding_report.skipped and len(integrator.guiding_report.passes) > 2
+    assert not integrator.guiding_report.skipped
 
 
 def test_guided_roulette_is_unbiased_and_bounded():
