@@ -15,7 +15,9 @@ test set reports them.
   forward-scattering fog (HG 0.85) under a small light outside it;
 * test: the smooth smoke of scenes/smoke.xml under its area light, a camera inside a
   forward-scattering cloud (HG 0.6), a strongly forward-scattering ball (HG 0.9), a dense
-  chromatic ball under an environment.
+  chromatic ball under an environment;
+* cost (``--set cost``, not in ``both``): where guiding cannot pay, what it costs: thin
+  fog balls (sigma_t 0.2 and 0.02) under the small light and an environment.
 
 ``python3 -m benchmarks.guiding [--set tuning|test|both] [--configs a,b]`` writes
 ``benchmarks/results/guiding.{md,json}``; ``--surfaces --spp 256 --out
@@ -248,6 +250,10 @@ SCENES = {
                                                      sensor=camera(res), env=0)),
     "chromatic_dense": ("test", lambda res: media_scene(
         homogeneous([8.0, 16.0, 30.0], albedo=0.95, g=0.3), sensor=camera(res), env=0.5)),
+    "thin_ball": ("cost", lambda res: media_scene(homogeneous(0.2, albedo=0.8),
+                                                  sensor=camera(res))),
+    "near_empty_ball": ("cost", lambda res: media_scene(homogeneous(0.02, albedo=0.8),
+                                                        sensor=camera(res))),
 }
 #: surfaces (``--surfaces``): path_rr against Mitsuba's path. The tuning scene chose
 #: ``guiding_bins``, ``guiding_fraction`` and ``guiding_training``; ``slit_room`` and the
@@ -259,6 +265,12 @@ SURFACE_SCENES = {
     "cornell_box": ("test", lambda res: mi.load_file(str(ROOT / "scenes" / "cornell_box.xml"),
                                                      res=str(res))),
 }
+
+
+def selected(chosen: str, which: str) -> bool:
+    """Whether a scene of set ``which`` runs under ``--set chosen`` (``both``: tuning and
+    test)."""
+    return chosen == which or (chosen == "both" and which in ("tuning", "test"))
 
 
 def markdown(result: dict) -> str:
@@ -339,7 +351,7 @@ def _frozen_fields(args, scenes: dict, plain: dict, guiding: dict, resolutions, 
     from mitsuba_plugins import guided_render
     rows = {}
     for name, (which, make) in scenes.items():
-        if args.set not in ("both", which):
+        if not selected(args.set, which):
             continue
         scene = make(args.res)
         ref = dense.reference(scene, args.ref_spp) if ref_variant is None else \
@@ -465,7 +477,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--runs", type=int, default=4)
     ap.add_argument("--ref-spp", type=int, default=2048)
-    ap.add_argument("--set", choices=("tuning", "test", "both"), default="both")
+    ap.add_argument("--set", choices=("tuning", "test", "both", "cost"), default="both")
     ap.add_argument("--configs", default="off,guided")
     ap.add_argument("--scenes", default="", help="only these scenes (comma-separated)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "guiding"))
@@ -510,7 +522,7 @@ def main() -> None:
     out = Path(args.out)
     scenes = SURFACE_SCENES if args.surfaces else SCENES
     for name, (which, make) in scenes.items():
-        if args.set not in ("both", which) or \
+        if not selected(args.set, which) or \
                 (args.scenes and name not in args.scenes.split(",")):
             continue
         scene = make(args.res)
