@@ -124,7 +124,7 @@ MIN_PASS_PATHS = {"cuda": 1 << 21, "llvm": 0}
 #: share of 1 - 1/c. c = 1.42, the median over the volume tuning set (guided spp against
 #: unguided in the same time, docs/benchmarks.md), gives 0.3. Measured shares (128x128,
 #: first pass): volume tuning set 0.37 (forward_lamp) to 0.81 (dense ball), none skipped;
-#: surfaces' tuning room 1.0.
+#: surfaces' tuning room 1.0. A first pass that found no light at all counts as 0.
 MIN_SHARE = 0.3
 
 

@@ -59,8 +59,8 @@ MAX_BYTES = 64 << 20
 
 def field_bytes(resolution: int, bins: int = 0) -> int:
     """Bytes of a field of ``resolution^3`` cells: per cell a lobe (4 floats), its fluence,
-    :data:`ACC_STRIDE` accumulators (5 sums, a record count, 2 sums of the paths' light) on the device, 5
-    sums and a count on the host;
+    :data:`ACC_STRIDE` accumulators (5 sums, a record count, 2 sums of the paths' light)
+    on the device, 5 sums and a count on the host;
     with ``bins`` (:class:`HistogramField`) ``bins^2`` bins of 3 floats on the device
     (probability, cumulative, accumulator) and a double on the host."""
     return resolution ** 3 * (4 * 4 + 4 + ACC_STRIDE * 4 + 5 * 8 + 8 +
@@ -100,7 +100,8 @@ def cell_index(x: mi.Vector3f, r: int) -> mi.UInt32:
 
 #: floats per cell of the records' accumulators, one array (``GuidingField.acc``): W, Vx,
 #: Vy, Vz, N, the records' count, and what the paths whose first vertex lies in the cell
-#: gathered after that vertex and in all (:meth:`GuidingField.record_flow`). A power of two, so that Dr.Jit's LLVM
+#: gathered beyond its direct light and in all (:meth:`GuidingField.record_flow`). A
+#: power of two, so that Dr.Jit's LLVM
 #: backend adds a record with one packet scatter (``JitFlag.PacketOps``) instead of one
 #: scatter per sum (with the light grid's pairs, ``distance.LightGrid.acc``: the camera
 #: inside the cloud's training passes of 16 and 32 spp at 128x128 took 0.25 and 0.50 s
@@ -137,7 +138,8 @@ class GuidingField:
         self.lo, self.inv_size = grid_box(bbox)
         self.sums = np.zeros((self.cells, 5), np.float64)        # W, Vx, Vy, Vz, N
         self.records = np.zeros(self.cells, np.int64)
-        # what the last pass's paths gathered after their first vertex, and in all
+        # what the last pass's paths gathered beyond their first vertex's direct light,
+        # and in all (record_flow)
         self.flow = np.zeros(2)
         self._upload(np.zeros((self.cells, 3)), np.zeros(self.cells))
 
@@ -235,8 +237,9 @@ class GuidingField:
 
     def record_flow(self, cell: mi.UInt32, after: mi.Float, total: mi.Float,
                     active) -> None:
-        """Add what a path gathered after its first recorded vertex (which lies in
-        ``cell``) and in all to the accumulators' last two floats (:attr:`flow`)."""
+        """Add what a path gathered beyond its first recorded vertex's direct light (that
+        vertex lies in ``cell``) and in all to the accumulators' last two floats
+        (:attr:`flow`, summed over cells by :meth:`update`)."""
         ok = active & dr.isfinite(total) & dr.isfinite(after)
         dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(
             0.0, 0.0, 0.0, 0.0, 0.0, 0.0, after, total), cell, ok)
