@@ -471,12 +471,10 @@ def test_guided_surfaces_estimate_the_same_image(bins, monkeypatch):
 def _fog_ball(res: int = 32, albedo: float = 0.9) -> mi.Scene:
     """A ball of homogeneous fog under a small light, nothing else: every path that
     gathers light has its first vertex in the fog."""
-    return mi.load_dict({
-        "type": "scene", "sensor": camera(res=res),
-        "light": {"type": "sphere", "center": [1.6, 2.2, 1.2], "radius": 0.25,
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 40.0}}},
-        "ball": {"type": "sphere", "bsdf": {"type": "null"},
-                 "interior": homogeneous(2.0, albedo=albedo)}})
+    scene = media_scene(homogeneous(2.0, albedo=albedo), sensor=camera(res=res), env=0,
+                        as_dict=True)
+    del scene["floor"]
+    return mi.load_dict(scene)
 
 
 def test_the_first_pass_measures_the_light_beyond_direct_light():
