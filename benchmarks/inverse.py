@@ -10,6 +10,9 @@
   of the grid over time; and an emission grid (prbvolpath ignores emission) with ours.
 * ``estimators``: the smoke's reconstruction with ``drt`` and ``sm`` at the same budget
   (issue 48: which estimator reconstructs faster).
+* ``profile`` (not in ``all``; printed, nothing written): a reconstruction's gradient
+  renders per view at its start and at the truth, wall time and kernels, ours against
+  prbvolpath (``--case``, default the cloud).
 
 Run from the repository root: ``python3 -m benchmarks.inverse [--part P] [--quick]``.
 Results: benchmarks/results/inverse.{md,json}, plots docs/results/inverse_*.png.
@@ -223,30 +226,37 @@ EVALUATE_EVERY = 2
 SEEDS = (0, 1)
 
 
-def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid,
-                scale: float, lr: float, emission: bool = False, seed: int = 0) -> dict:
-    """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
-    for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
-    offsets the gradient renders' seeds."""
+def problem(grid, scale: float, emission: bool = False):
+    """The scene of a reconstruction: ``grid`` as the density of a ``grid_medium`` over
+    [-1, 1]^3 (``scale``, albedo 0.85) and, with ``emission``, 4x it as its emission, lit
+    as ``media_scene`` lights it with a dim environment. Returns ``(scene, params, key,
+    truth)``: the parameter fitted (the density, or the emission) and its true value."""
     import tempfile
     from mitsuba_plugins.tools.scenes import media_scene
     from mitsuba_plugins.grids import gridio
-    true = grid
     tmp = tempfile.mkdtemp()
     path = os.path.join(tmp, "truth.vol")
-    gridio.write_vol(path, true)
+    gridio.write_vol(path, grid)
     medium = {"type": "grid_medium", "filename": path, "scale": scale, "albedo": 0.85,
               "to_world": mi.ScalarTransform4f().translate([-1, -1, -1]).scale(2)}
     if emission:
         em_path = os.path.join(tmp, "emission.vol")
-        gridio.write_vol(em_path, (true * 4.0).astype(np.float32))
+        gridio.write_vol(em_path, (grid * 4.0).astype(np.float32))
         medium["emission"] = {"type": "gridvolume", "filename": em_path,
                               "to_world": medium["to_world"]}
     scene = media_scene(medium, env=0.1)
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith(
         "emission.data" if emission else "interior_medium.data"))
-    truth = mi.TensorXf(params[key])
+    return scene, params, key, mi.TensorXf(params[key])
+
+
+def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid,
+                scale: float, lr: float, emission: bool = False, seed: int = 0) -> dict:
+    """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
+    for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
+    offsets the gradient renders' seeds."""
+    scene, params, key, truth = problem(grid, scale, emission)
     sensors = ring_sensors(views, res)
     # emitters hidden: a pixel that sees the small light directly (radiance 40, noisy at
     # its edge) would dominate every loss and its estimate
@@ -394,6 +404,60 @@ def estimators(quick: bool) -> dict:
                     "drt_time_to_sm_final_loss": time_to_reach(
                         runs["drt"]["history"], runs["sm"]["history"][-1]["loss"])})
     return {"case": "smoke 32^3", "budget": budget, "seeds": out}
+
+
+#: ``--part profile``: the methods timed, views per step, timed steps
+PROFILED = ("ours", "drt", "prbvolpath")
+PROFILE_VIEWS, PROFILE_STEPS = 4, 5
+
+
+def profile(case_name: str) -> None:
+    """Where a reconstruction step's time goes (printed, not written): ``case_name``'s
+    problem at its start (the uniform mean density) and at the true density, each method
+    of PROFILED rendering and back-propagating PROFILE_VIEWS views in turn; per view: the
+    median wall time over PROFILE_STEPS steps after one warm-up step, and the kernels'
+    own time (Dr.Jit's kernel history): the primal's (``mi.render``) and the rest (the
+    backward pass's, which runs the primal again fused with the replay)."""
+    case = CASES[case_name]
+    grid = case["grid"]()
+    scene, params, key, truth = problem(grid, case["scale"])
+    sensors = ring_sensors(PROFILE_VIEWS, case["res"])
+    states = {"start": dr.full(mi.TensorXf, float(np.mean(grid)), truth.shape),
+              "truth": truth}
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    print(f"{case_name}: {PROFILE_VIEWS} views of {case['res']}^2 at {case['spp']} spp, "
+          f"ms per view (median of {PROFILE_STEPS} steps)", flush=True)
+    for state, value in states.items():
+        for method in PROFILED:
+            integrator = mi.load_dict(dict(METHODS[method], max_depth=8, hide_emitters=True))
+            params[key] = mi.TensorXf(value)
+            dr.enable_grad(params[key])
+            params.update()
+            walls, primal, rest = [], [], []
+            for step in range(PROFILE_STEPS + 1):
+                sync()
+                dr.kernel_history()
+                t0 = time.perf_counter()
+                for v, sensor in enumerate(sensors):
+                    img = mi.render(scene, params, sensor=sensor, integrator=integrator,
+                                    spp=case["spp"], seed=step * PROFILE_VIEWS + v)
+                    dr.backward(dr.mean(dr.square(img), axis=None))
+                dr.eval(dr.grad(params[key]))
+                sync()
+                wall = time.perf_counter() - t0
+                kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+                # per view, the first kernel is mi.render's primal
+                first = kernels[::len(kernels) // PROFILE_VIEWS]
+                if step:
+                    walls.append(wall)
+                    primal.append(sum(k["execution_time"] for k in first))
+                    rest.append(sum(k["execution_time"] for k in kernels) - primal[-1])
+                dr.set_grad(params[key], 0.0)
+            n = PROFILE_VIEWS
+            print(f"  {state:5s} {method:10s} wall {1e3 * np.median(walls) / n:6.1f}, kernels: "
+                  f"primal {np.median(primal) / n:6.1f}, backward {np.median(rest) / n:6.1f}",
+                  flush=True)
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
 def plot(results: dict) -> None:
@@ -585,7 +649,7 @@ def targets(results: dict) -> list:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--part", choices=("efficiency", "memory", "lr", "reconstruct",
-                                           "estimators", "all"),
+                                           "estimators", "profile", "all"),
                         default="all")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--case", choices=list(CASES), help="one reconstruction only")
@@ -596,6 +660,9 @@ def main() -> None:
     mi.set_variant(default_variant())
     if args.memory_child:
         memory_child(args.memory_child)
+        return
+    if args.part == "profile":          # printed only: a machine's timings, not results
+        profile(args.case or "cloud 64^3")
         return
     results = {}
     if args.part in ("efficiency", "all"):
