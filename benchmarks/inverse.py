@@ -411,19 +411,50 @@ PROFILED = ("ours", "drt", "prbvolpath")
 PROFILE_VIEWS, PROFILE_STEPS = 4, 5
 
 
+def kernel_ms() -> float:
+    """Milliseconds of the JIT kernels run since the last call (Dr.Jit's kernel history,
+    which waits for them)."""
+    return sum(k["execution_time"] for k in dr.kernel_history()
+               if k["type"] == dr.KernelType.JIT)
+
+
 def profile(case_name: str) -> None:
     """Where a reconstruction step's time goes (printed, not written): ``case_name``'s
     problem at its start (the uniform mean density) and at the true density, each method
-    of PROFILED rendering and back-propagating PROFILE_VIEWS views in turn; per view: the
-    median wall time over PROFILE_STEPS steps after one warm-up step, and the kernels'
-    own time (Dr.Jit's kernel history): the primal's (``mi.render``) and the rest (the
-    backward pass's, which runs the primal again fused with the replay)."""
+    of PROFILED rendering and back-propagating PROFILE_VIEWS views in turn; per view, the
+    median over PROFILE_STEPS steps after one warm-up step of: the wall time, and, in
+    steps of their own that evaluate the gradient after each view (Dr.Jit would otherwise
+    fuse a view's backward pass into the next view's launches), the kernels' time in
+    ``mi.render`` (the primal) and in the backward pass (which runs the primal again,
+    fused with the replay)."""
     case = CASES[case_name]
     grid = case["grid"]()
     scene, params, key, truth = problem(grid, case["scale"])
     sensors = ring_sensors(PROFILE_VIEWS, case["res"])
     states = {"start": dr.full(mi.TensorXf, float(np.mean(grid)), truth.shape),
               "truth": truth}
+
+    def step(integrator, seed: int, split: bool):
+        """One step: ``(wall seconds, primal ms, backward ms)``, the kernels' times only
+        with ``split``."""
+        sync()
+        kernel_ms()
+        t0, primal, backward = time.perf_counter(), 0.0, 0.0
+        for v, sensor in enumerate(sensors):
+            img = mi.render(scene, params, sensor=sensor, integrator=integrator,
+                            spp=case["spp"], seed=seed + v)
+            if split:
+                primal += kernel_ms()
+            dr.backward(dr.mean(dr.square(img), axis=None))
+            if split:
+                dr.eval(dr.grad(params[key]))
+                backward += kernel_ms()
+        dr.eval(dr.grad(params[key]))
+        sync()
+        wall = time.perf_counter() - t0
+        dr.set_grad(params[key], 0.0)
+        return wall, primal, backward
+
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     print(f"{case_name}: {PROFILE_VIEWS} views of {case['res']}^2 at {case['spp']} spp, "
           f"ms per view (median of {PROFILE_STEPS} steps)", flush=True)
@@ -433,30 +464,14 @@ def profile(case_name: str) -> None:
             params[key] = mi.TensorXf(value)
             dr.enable_grad(params[key])
             params.update()
-            walls, primal, rest = [], [], []
-            for step in range(PROFILE_STEPS + 1):
-                sync()
-                dr.kernel_history()
-                t0 = time.perf_counter()
-                for v, sensor in enumerate(sensors):
-                    img = mi.render(scene, params, sensor=sensor, integrator=integrator,
-                                    spp=case["spp"], seed=step * PROFILE_VIEWS + v)
-                    dr.backward(dr.mean(dr.square(img), axis=None))
-                dr.eval(dr.grad(params[key]))
-                sync()
-                wall = time.perf_counter() - t0
-                kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-                # per view, the first kernel is mi.render's primal
-                first = kernels[::len(kernels) // PROFILE_VIEWS]
-                if step:
-                    walls.append(wall)
-                    primal.append(sum(k["execution_time"] for k in first))
-                    rest.append(sum(k["execution_time"] for k in kernels) - primal[-1])
-                dr.set_grad(params[key], 0.0)
-            n = PROFILE_VIEWS
-            print(f"  {state:5s} {method:10s} wall {1e3 * np.median(walls) / n:6.1f}, kernels: "
-                  f"primal {np.median(primal) / n:6.1f}, backward {np.median(rest) / n:6.1f}",
-                  flush=True)
+            step(integrator, 0, False)                       # warm-up
+            walls = [step(integrator, k * PROFILE_VIEWS, False)[0]
+                     for k in range(1, PROFILE_STEPS + 1)]
+            split = np.array([step(integrator, k * PROFILE_VIEWS, True)[1:]
+                              for k in range(1, PROFILE_STEPS + 1)])
+            primal, backward = np.median(split, axis=0) / PROFILE_VIEWS
+            print(f"  {state:5s} {method:10s} wall {1e3 * np.median(walls) / PROFILE_VIEWS:6.1f}, "
+                  f"kernels: primal {primal:6.1f}, backward {backward:6.1f}", flush=True)
     dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
