@@ -79,8 +79,9 @@ CONFIGS = {
     **{f"path_rr_guided_b{b}_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
                                        "guiding_bins": b, "guiding_fraction": f}
        for b in (0, 8, 16) for f in (0.2, 0.3, 0.5)},
-    "path_rr_guided_t50": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
-                           "guiding_training": 0.5},
+    **{f"path_rr_guided_t{round(100 * t)}": {"type": "path_rr", "max_depth": 12,
+                                             "guiding": "surfaces", "guiding_training": t}
+       for t in (0.0625, 0.125, 0.5)},
     **{f"path_rr_guided_r16_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
                                       "guiding_resolution": 16, "guiding_fraction": f}
        for f in (0.2, 0.3, 0.5)},
