@@ -327,12 +327,13 @@ class HistogramField(GuidingField):
         cdf = np.cumsum(prob, axis=1)
         cdf[:, -1] = 1.0
         # start[c, j]: the first bin of cell c whose cumulative probability (as the
-        # device holds it, float32) reaches j / size: no u in [j / size, (j + 1) / size)
-        # falls in an earlier bin
+        # device holds it, float32) reaches j / size less 1e-6: no u that the device
+        # maps to interval j (floor(u * size) in float32, which may round a u just below
+        # j / size up to j) falls in an earlier bin
         cdf32 = cdf.astype(np.float32).astype(np.float64)
         offset = 2.0 * np.arange(self.cells)[:, None]       # rows apart, still sorted
         start = np.searchsorted((cdf32 + offset).ravel(),
-                                (np.arange(self.size) / self.size + offset).ravel())
+                                (np.arange(self.size) / self.size - 1e-6 + offset).ravel())
         start = start.reshape(self.cells, self.size) - \
             self.size * np.arange(self.cells)[:, None]
         self.start = mi.UInt32(np.clip(start, 0, self.size - 1).astype(np.uint32).ravel())
@@ -358,21 +359,25 @@ class HistogramField(GuidingField):
         return lambda d: dr.gather(mi.Float, self.prob, base + self._bin(d), active) * \
             (self.size / (4 * math.pi))
 
+    def find_bin(self, cell, u: mi.Float, active=True) -> mi.UInt32:
+        """The first bin of ``cell`` whose cumulative probability reaches ``u``. The
+        guide table (Chen and Asau 1974) gives the first bin that can be it, from the
+        interval of ``u``; the loop steps from there (each bin holds at least
+        BIN_UNIFORM / size, so at most 1 / BIN_UNIFORM + 2 steps): the same bin as a
+        binary search, in fewer gathers."""
+        base = cell * self.size
+        j = dr.minimum(mi.UInt32(u * self.size), self.size - 1)
+        b = dr.gather(mi.UInt32, self.start, base + j, active)
+        return dr.while_loop(
+            (b,), lambda b: active & (b < self.size - 1) &
+            (dr.gather(mi.Float, self.cdf, base + b, active) < u),
+            lambda b: (b + 1,), label="guide_table")[0]
+
     def sample(self, cell, u: mi.Point2f, active=True) -> mi.Vector3f:
         """A direction: ``u.x`` chooses the bin and is reused for ``z`` within it,
         ``u.y`` gives ``phi`` within it."""
         base = cell * self.size
-        # the bin: the first whose cumulative probability reaches u.x. The guide table
-        # (Chen and Asau 1974) gives the first bin that can be it, from the interval of
-        # u.x; the loop steps from there (each bin holds at least BIN_UNIFORM / size, so
-        # at most 1 / BIN_UNIFORM + 1 steps): the same bin as a binary search, in fewer
-        # gathers
-        j = dr.minimum(mi.UInt32(u.x * self.size), self.size - 1)
-        b = dr.gather(mi.UInt32, self.start, base + j, active)
-        b = dr.while_loop(
-            (b,), lambda b: active & (b < self.size - 1) &
-            (dr.gather(mi.Float, self.cdf, base + b, active) < u.x),
-            lambda b: (b + 1,), label="guide_table")[0]
+        b = self.find_bin(cell, u.x, active)
         hi = dr.gather(mi.Float, self.cdf, base + b, active)
         p = dr.gather(mi.Float, self.prob, base + b, active)
         x = dr.clip(1.0 - (hi - u.x) / dr.maximum(p, 1e-30), 0.0, 0.99999)

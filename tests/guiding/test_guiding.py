@@ -91,6 +91,34 @@ def test_histogram_pdf_is_the_density_of_its_samples(bins):
     _assert_density_of_samples(field, cell=3, mass=_histogram_mass)
 
 
+@pytest.mark.parametrize("bins", [5, 16])
+def test_guide_table_finds_the_bin_a_binary_search_finds(bins):
+    """For every u at and beside (one float32 step each way) each bin's cumulative
+    probability and each of the table's interval bounds, and 2^16 uniform ones, the guide table gives the first bin whose
+    cumulative probability (float32, as the device holds it) reaches u."""
+    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2,
+                           bins=bins)
+    rng = np.random.default_rng(bins + 1)
+    weights = rng.gamma(0.5, size=(field.cells, field.size)) * \
+        (rng.random((field.cells, field.size)) > 0.2)
+    field.acc_hist = mi.Float(weights.ravel().astype(np.float32))
+    _accumulate(field, np.array([1, 0.3, 0, 0, 100])[:, None].repeat(field.cells, 1), 100)
+    field.update()
+    untrained = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2,
+                               bins=bins)          # uniform: its sums lie on the grid
+    for field, cell in ((field, 0), (field, 5), (untrained, 0)):
+        row = np.array(field.cdf, np.float32).reshape(field.cells, field.size)[cell]
+        grid = (np.arange(field.size) / field.size).astype(np.float32)
+        u = np.concatenate([row, np.nextafter(row, 0), np.nextafter(row, 1),
+                            rng.random(1 << 16).astype(np.float32),
+                            grid, np.nextafter(grid, 0), np.nextafter(grid, 1)])
+        u = u[(u >= 0) & (u < 1)].astype(np.float32)
+        found = np.array(field.find_bin(mi.UInt32(np.full(u.size, cell, np.uint32)),
+                                        mi.Float(u)))
+        expected = np.minimum(np.searchsorted(row, u, side="left"), field.size - 1)
+        assert np.array_equal(found, expected)
+
+
 def _sphere_midpoints(nz: int, nphi: int):
     """``(Z, P, dirs)``: the midpoints of an ``nz x nphi`` grid of equal-area (z, phi)
     bins over the sphere, as arrays and as Dr.Jit directions (z-major)."""
