@@ -184,12 +184,6 @@ class GuidingField:
         """The cell holding ``p`` (clamped to the grid)."""
         return grid_cell(self.lo, self.inv_size, self.resolution, p)
 
-    def cell_near(self, p: mi.Point3f, u: mi.Vector3f) -> mi.UInt32:
-        """The cell holding ``p`` moved by ``u - 0.5`` cells along each axis (``u``
-        uniform in the unit cube): a stochastic box filter of the field in space."""
-        x = (p - mi.Point3f(*self.lo)) * mi.Vector3f(*self.inv_size) * self.resolution
-        return cell_index(x + (u - 0.5), self.resolution)
-
     def lobe(self, cell: mi.UInt32, active=True):
         """``(mu, kappa)`` of ``cell``."""
         mu = mi.Vector3f(*[dr.gather(mi.Float, m, cell, active) for m in self.mu])

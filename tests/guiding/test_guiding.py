@@ -94,8 +94,10 @@ def test_histogram_pdf_is_the_density_of_its_samples(bins):
 @pytest.mark.parametrize("bins", [5, 16])
 def test_guide_table_finds_the_bin_a_binary_search_finds(bins):
     """For every u at and beside (one float32 step each way) each bin's cumulative
-    probability and each of the table's interval bounds, and 2^16 uniform ones, the guide table gives the first bin whose
-    cumulative probability (float32, as the device holds it) reaches u."""
+    probability and each of the table's interval bounds, and 2^16 uniform ones, the
+    guide table gives the first bin whose cumulative probability (float32, as the device
+    holds it) reaches u: in trained cells and in a uniform one (bin count 5: its bounds
+    j / 25 are not float32s)."""
     field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=2,
                            bins=bins)
     rng = np.random.default_rng(bins + 1)
