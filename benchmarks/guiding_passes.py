@@ -13,6 +13,7 @@ import argparse
 import time
 
 from benchmarks import guiding
+from benchmarks.harness import jit_kernels
 import drjit as dr
 import mitsuba as mi
 
@@ -34,7 +35,7 @@ def profile(scene: mi.Scene, label: str, config: dict, spp: int) -> None:
         dr.eval(mi.render(scene, integrator=integrator, spp=spp, seed=seed))
         dr.sync_thread()
         wall = time.perf_counter() - start
-        history = [k for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT]
+        history = jit_kernels()
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     report = getattr(integrator, "guiding_report", None)
     kernels = [round(k["execution_time"], 1) for k in history if k["execution_time"] > 0.05]

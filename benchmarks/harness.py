@@ -42,6 +42,13 @@ def device_model(variant: str) -> str:
     return cpu_model()
 
 
+def jit_kernels() -> list:
+    """The JIT kernels Dr.Jit ran since its kernel history was last read (each a dict:
+    ``execution_time`` in ms, ``cache_hit``, ...); the history must be on
+    (``JitFlag.KernelHistory``), and reading it waits for them."""
+    return dr.kernel_history([dr.KernelType.JIT])
+
+
 def timed_render(scene, integrator, spp, seed):
     t0 = time.perf_counter()
     img = mi.render(scene, integrator=integrator, spp=spp, seed=seed)

@@ -414,8 +414,8 @@ PROFILE_VIEWS, PROFILE_STEPS = 4, 5
 def kernel_ms() -> float:
     """Milliseconds of the JIT kernels run since the last call (Dr.Jit's kernel history,
     which waits for them)."""
-    return sum(k["execution_time"] for k in dr.kernel_history()
-               if k["type"] == dr.KernelType.JIT)
+    from benchmarks.harness import jit_kernels
+    return sum(k["execution_time"] for k in jit_kernels())
 
 
 def profile(case_name: str) -> None:
