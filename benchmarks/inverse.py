@@ -207,7 +207,7 @@ CASES = {
 #: with the lowest final loss at this budget
 LR_TUNING = dict(grid=lambda: cloud(32, seed=11), views=8, res=64, spp=16, scale=12.0,
                  budget=90.0)
-LEARNING_RATES = (0.01, 0.02, 0.04, 0.08)
+LEARNING_RATES = (0.01, 0.02, 0.03, 0.04, 0.06, 0.08)
 #: the two methods of the reconstructions: ours (volpath_delta's defaults) and prbvolpath
 COMPARED = ("ours", "prbvolpath")
 
@@ -593,7 +593,7 @@ def write(results: dict) -> None:
                   f"{st['res']}^2, {st['spp']} spp, {st['budget']:.0f} s each, one seed)", "",
                   "| lr | " + " | ".join(f"{m}: final loss, error" for m in t["runs"]) + " |",
                   "|---|" + "---|" * len(t["runs"])]
-        for lr in next(iter(t["runs"].values())):
+        for lr in sorted(next(iter(t["runs"].values())), key=float):
             lines.append(f"| {float(lr):g} | " + " | ".join(
                 f"{r[lr]['final']['loss']:.3e}, {r[lr]['final']['error']:.3f}"
                 for r in t["runs"].values()) + " |")
