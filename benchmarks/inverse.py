@@ -252,10 +252,12 @@ def problem(grid, scale: float, emission: bool = False):
 
 
 def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid,
-                scale: float, lr: float, emission: bool = False, seed: int = 0) -> dict:
+                scale: float, lr: float, emission: bool = False, seed: int = 0,
+                spp_grad: int = 0) -> dict:
     """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
     for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
-    offsets the gradient renders' seeds."""
+    offsets the gradient renders' seeds; ``spp_grad`` (default ``spp``): the samples per
+    pixel of the replay that gives the gradient (Mitsuba's ``mi.render(spp_grad=)``)."""
     scene, params, key, truth = problem(grid, scale, emission)
     sensors = ring_sensors(views, res)
     # emitters hidden: a pixel that sees the small light directly (radiance 40, noisy at
@@ -291,7 +293,7 @@ def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid
         t0 = time.perf_counter()
         for v, sensor in enumerate(sensors):
             img = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp,
-                            seed=100_000 * seed + it * views + v)
+                            spp_grad=spp_grad or spp, seed=100_000 * seed + it * views + v)
             dr.backward(dr.mean(dr.square(img - references[v]), axis=None))
         opt.step()
         opt[key] = dr.maximum(opt[key], 0.0)
