@@ -202,12 +202,17 @@ CASES = {
     "cloud 64^3": dict(grid=lambda: cloud(64), views=12, res=64, spp=16, scale=12.0,
                        lr=0.02, budget=200.0),
 }
-#: the learning rates are chosen per method on a problem of their own (``--part lr``: a
-#: different cloud, seed 11, at 32^3), not on CASES: each method's rate of LEARNING_RATES
-#: with the lowest final loss at this budget
-LR_TUNING = dict(grid=lambda: cloud(32, seed=11), views=8, res=64, spp=16, scale=12.0,
-                 budget=90.0)
-LEARNING_RATES = (0.01, 0.02, 0.03, 0.04, 0.06, 0.08)
+#: the learning rates are chosen per method and per case on a twin problem of the case's
+#: own size, views and budget with a different cloud (seed 11), not on CASES: each
+#: method's rate of ``rates`` with the lowest final loss. The 64^3 cloud had its own twin
+#: from the fifteenth session on: chosen on the 32^3 twin, ours' 0.02 was half
+#: prbvolpath's 0.04, and on a 64^3 cloud ours did better at 0.04 (docs/benchmarks.md)
+LR_TUNING = {
+    "smoke 32^3": dict(grid=lambda: cloud(32, seed=11), views=8, res=64, spp=16, scale=12.0,
+                       budget=90.0, rates=(0.01, 0.02, 0.03, 0.04, 0.06, 0.08)),
+    "cloud 64^3": dict(grid=lambda: cloud(64, seed=11), views=12, res=64, spp=16,
+                       scale=12.0, budget=200.0, rates=(0.02, 0.03, 0.04, 0.06)),
+}
 #: the two methods of the reconstructions: ours (volpath_delta's defaults) and prbvolpath
 COMPARED = ("ours", "prbvolpath")
 
@@ -326,33 +331,43 @@ def error_fraction(run: dict) -> float:
                          "error") / run["prbvolpath_seconds"]
 
 
-def learning_rates(quick: bool) -> dict:
-    """Each compared method's final loss and error on LR_TUNING at each rate of
-    LEARNING_RATES (one seed, the methods alternating), and the rate it does best with.
-    Runs stored in inverse.json with the same setup are kept, not repeated (a rate added
-    to LEARNING_RATES runs alone)."""
-    problem = {k: v for k, v in LR_TUNING.items() if k not in ("grid", "budget")}
-    budget = LR_TUNING["budget"] / (4 if quick else 1)
-    grid = LR_TUNING["grid"]()
-    setup = dict(problem, budget=budget, shape=list(grid.shape), grid="cloud seed 11")
+def learning_rates(quick: bool, only=None) -> dict:
+    """For every case (or ``only``), each compared method's final loss and error on the
+    case's LR_TUNING twin at each of its rates (one seed, the methods alternating), and
+    the rate it does best with. Runs stored in inverse.json with the same setup are kept,
+    not repeated (a rate added runs alone)."""
     path = RESULTS / "inverse.json"
-    stored = json.loads(path.read_text()).get("lr", {}) if path.exists() else {}
-    runs = stored["runs"] if stored.get("setup") == setup else {m: {} for m in COMPARED}
-    for i, lr in enumerate(LEARNING_RATES):
-        for m in COMPARED if i % 2 == 0 else COMPARED[::-1]:
-            if str(lr) in runs[m]:
-                continue
-            r = reconstruct(m, budget, grid=grid, lr=lr, **problem)
-            runs[m][str(lr)] = {"iterations": r["iterations"], "final": r["history"][-1]}
-    best = {m: float(min(r, key=lambda lr: r[lr]["final"]["loss"])) for m, r in runs.items()}
-    return {"setup": setup, "runs": runs, "best": best}
+    stored_all = json.loads(path.read_text()).get("lr", {}) if path.exists() else {}
+    out = {}
+    for name, twin in LR_TUNING.items():
+        stored = stored_all.get(name, {})
+        if only and name != only:
+            if stored:
+                out[name] = stored
+            continue
+        problem = {k: v for k, v in twin.items() if k not in ("grid", "budget", "rates")}
+        budget = twin["budget"] / (4 if quick else 1)
+        grid = twin["grid"]()
+        setup = dict(problem, budget=budget, shape=list(grid.shape), grid="cloud seed 11")
+        runs = stored["runs"] if stored.get("setup") == setup else {m: {} for m in COMPARED}
+        for i, lr in enumerate(twin["rates"]):
+            for m in COMPARED if i % 2 == 0 else COMPARED[::-1]:
+                if str(lr) in runs[m]:
+                    continue
+                r = reconstruct(m, budget, grid=grid, lr=lr, **problem)
+                runs[m][str(lr)] = {"iterations": r["iterations"], "final": r["history"][-1]}
+        best = {m: float(min(r, key=lambda lr: r[lr]["final"]["loss"]))
+                for m, r in runs.items()}
+        out[name] = {"setup": setup, "runs": runs, "best": best}
+    return out
 
 
-def chosen_rates(case: dict) -> dict:
-    """The rate each compared method does best with (``--part lr``, kept in inverse.json),
-    or the case's own where that part has not run."""
+def chosen_rates(name: str, case: dict) -> dict:
+    """The rate each compared method does best with on the case's twin (``--part lr``,
+    kept in inverse.json), or the case's own where that part has not run."""
     path = RESULTS / "inverse.json"
-    best = json.loads(path.read_text()).get("lr", {}).get("best", {}) if path.exists() else {}
+    lr = json.loads(path.read_text()).get("lr", {}) if path.exists() else {}
+    best = lr.get(name, {}).get("best", {})
     return {m: best.get(m, case["lr"]) for m in COMPARED}
 
 
@@ -366,7 +381,7 @@ def reconstruction(quick: bool, only=None) -> dict:
             continue
         budget = case["budget"] / (4 if quick else 1)
         setup = {k: v for k, v in case.items() if k not in ("grid", "budget", "lr")}
-        rates = chosen_rates(case)
+        rates = chosen_rates(name, case)
         grid = case["grid"]()
         seeds = []
         for seed in SEEDS[:1] if quick else SEEDS:
@@ -556,8 +571,8 @@ def write(results: dict) -> None:
                   f"unbiased estimate of the squared error of the expected image, evaluated "
                   f"every {EVALUATE_EVERY} iterations.", "",
                   "Ours: volpath_delta's defaults (gradient_estimator \"auto\": `sm` on "
-                  "these gray grids). Learning rates: each method's best on a problem of "
-                  "their own (below).", "",
+                  "these gray grids). Learning rates: each method's best on a twin "
+                  "problem of the case's size with another cloud (below).", "",
                   "| case | seed | views x pixels, spp | lr (ours, prbvolpath) | iterations "
                   "(ours, prbvolpath) | loss start -> prbvolpath final | ours reaches it "
                   "after | ours reaches prbvolpath's final error after | final loss (ours, "
@@ -588,17 +603,18 @@ def write(results: dict) -> None:
                       f"{e['iterations']} iterations, loss {e['history'][0]['loss']:.3e} -> "
                       f"{e['history'][-1]['loss']:.3e}, relative error of the emission grid "
                       f"{e['history'][0]['error']:.3f} -> {e['history'][-1]['error']:.3f}.", ""]
-    if "lr" in old:
-        t = old["lr"]
+    for name, t in old.get("lr", {}).items():
         st = t["setup"]
-        lines += [f"## Learning rates ({st['grid']}, {st['shape'][0]}^3, {st['views']} x "
-                  f"{st['res']}^2, {st['spp']} spp, {st['budget']:.0f} s each, one seed)", "",
+        lines += [f"## Learning rates for {name} ({st['grid']}, {st['shape'][0]}^3, "
+                  f"{st['views']} x {st['res']}^2, {st['spp']} spp, {st['budget']:.0f} s "
+                  "each, one seed)", "",
                   "| lr | " + " | ".join(f"{m}: final loss, error" for m in t["runs"]) + " |",
                   "|---|" + "---|" * len(t["runs"])]
-        for lr in sorted(next(iter(t["runs"].values())), key=float):
+        rates = sorted({lr for r in t["runs"].values() for lr in r}, key=float)
+        for lr in rates:
             lines.append(f"| {float(lr):g} | " + " | ".join(
                 f"{r[lr]['final']['loss']:.3e}, {r[lr]['final']['error']:.3f}"
-                for r in t["runs"].values()) + " |")
+                if lr in r else "-" for r in t["runs"].values()) + " |")
         lines += ["", "Chosen (lowest final loss): " + ", ".join(
             f"{m} {lr:g}" for m, lr in t["best"].items()) + ".", ""]
     if "estimators" in old:
@@ -669,7 +685,8 @@ def main() -> None:
                                            "estimators", "profile", "all"),
                         default="all")
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--case", choices=list(CASES), help="one reconstruction only")
+    parser.add_argument("--case", choices=list(CASES),
+                        help="one reconstruction (or its learning rates) only")
     parser.add_argument("--scene", choices=list(EFFICIENCY_SCENES), action="append",
                         help="efficiency: these scenes only (the others' results are kept)")
     parser.add_argument("--memory-child", type=int)
@@ -687,14 +704,15 @@ def main() -> None:
     if args.part in ("memory", "all"):
         results["memory"] = {str(k): v for k, v in memory().items()}
     if args.part in ("lr", "all"):
-        results["lr"] = learning_rates(args.quick)
+        results["lr"] = learning_rates(args.quick, args.case)
         write(results)                  # reconstruction reads the chosen rates from there
     if args.part in ("reconstruct", "all"):
         results["reconstruct"] = reconstruction(args.quick, args.case)
-        plot(results)
     if args.part in ("estimators", "all"):
         results["estimators"] = estimators(args.quick)
     write(results)
+    if "reconstruct" in results:      # every stored case (--case runs one)
+        plot(json.loads((RESULTS / "inverse.json").read_text()))
 
 
 if __name__ == "__main__":
