@@ -258,11 +258,13 @@ def problem(grid, scale: float, emission: bool = False):
 
 def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid,
                 scale: float, lr: float, emission: bool = False, seed: int = 0,
-                spp_grad: int = 0) -> dict:
+                spp_grad: int = 0, lr_end: float = None) -> dict:
     """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
     for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
     offsets the gradient renders' seeds; ``spp_grad`` (default ``spp``): the samples per
-    pixel of the replay that gives the gradient (Mitsuba's ``mi.render(spp_grad=)``)."""
+    pixel of the replay that gives the gradient (Mitsuba's ``mi.render(spp_grad=)``); ``lr_end``: the
+    learning rate falls linearly in time from ``lr`` to it over the budget (default:
+    constant)."""
     scene, params, key, truth = problem(grid, scale, emission)
     sensors = ring_sensors(views, res)
     # emitters hidden: a pixel that sees the small light directly (radiance 40, noisy at
@@ -300,6 +302,9 @@ def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid
             img = mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp,
                             spp_grad=spp_grad or spp, seed=100_000 * seed + it * views + v)
             dr.backward(dr.mean(dr.square(img - references[v]), axis=None))
+        if lr_end is not None:      # opaque: a new literal would be a new kernel
+            opt.set_learning_rate(dr.opaque(mi.Float, lr + (lr_end - lr) *
+                                            min(spent / budget, 1.0)))
         opt.step()
         opt[key] = dr.maximum(opt[key], 0.0)
         params.update(opt)
