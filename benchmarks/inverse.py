@@ -262,9 +262,9 @@ def reconstruct(method: str, budget: float, views: int, res: int, spp: int, grid
     """Adam on the density (or, ``emission``, the emission volume) from ``views`` images,
     for ``budget`` seconds of wall time (references and evaluations excluded); ``seed``
     offsets the gradient renders' seeds; ``spp_grad`` (default ``spp``): the samples per
-    pixel of the replay that gives the gradient (Mitsuba's ``mi.render(spp_grad=)``); ``lr_end``: the
-    learning rate falls linearly in time from ``lr`` to it over the budget (default:
-    constant)."""
+    pixel of the replay that gives the gradient (Mitsuba's ``mi.render(spp_grad=)``);
+    ``lr_end``: the learning rate falls linearly in time from ``lr`` to it over the
+    budget (default: constant)."""
     scene, params, key, truth = problem(grid, scale, emission)
     sensors = ring_sensors(views, res)
     # emitters hidden: a pixel that sees the small light directly (radiance 40, noisy at
