@@ -21,7 +21,7 @@ from helpers import (SMOKE, camera, grid, load, make_vdb, media_scene,
                      software_dense_textures)
 from mitsuba_plugins.tools import gradcheck
 
-TESTS = 35   # t-tests of this module in RGB, test by test: 11 + 3 + 3 + 7 + 4 + 1 + 5 + 1
+TESTS = 37   # t-tests of this module in RGB, test by test: 11 + 3 + 2 + 3 + 7 + 4 + 1 + 5 + 1
 ALPHA = 1.0 - (1.0 - 0.01) ** (1.0 / TESTS)
 SEEDS = range(8)
 SPP_GRAD = 128
@@ -124,6 +124,18 @@ def test_gradients_where_prbvolpath_fails():
     compare_with_finite_differences(
         mi.load_dict(desc), [f"sensor.medium.{k}" for k in names],
         {"type": "volpath_delta", "max_depth": DEPTH}, "inside-emissive-chromatic")
+
+
+@pytest.mark.parametrize("estimator", ["drt", "sm"])
+def test_shadow_rays_carry_the_transmittance_derivative(estimator):
+    """The floor in the ball's shadow, seen past the ball, with no environment and a
+    low albedo: the density's derivative is mostly the direct light's transmittance
+    through the ball, most of it taken on shadow rays (the small light's MIS weight)."""
+    sensor = camera(res=8, origin=(-2.5, 0.0, -2.5), target=(-0.76, -1.05, -0.57), fov=15.0)
+    compare_with_finite_differences(
+        media_scene(grid(albedo=0.2), sensor=sensor, env=0), [f"{GRID}.data"],
+        {"type": "volpath_delta", "max_depth": DEPTH, "gradient_estimator": estimator},
+        f"shadow-{estimator}")
 
 
 def test_mitsuba_media(tmp_path):
