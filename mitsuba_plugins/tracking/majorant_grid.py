@@ -76,13 +76,7 @@ class MajorantGrid:
         self.outside = dr.opaque(mi.Float, float(outside))
         self.to_local = mi.Transform4f(to_local)
         dr.make_opaque(self.values, self.minorants, self.to_local)
-        #: 1 / (world length of a cell's diagonal over sqrt(3), a cube's edge): cells per
-        #: unit length whatever the scene's units (opaque: a changed grid reuses kernels)
         to_world = mi.ScalarTransform4f(to_local).inverse()
-        diagonal = dr.norm(to_world @ mi.ScalarPoint3f(1, 1, 1) -
-                           to_world @ mi.ScalarPoint3f(0, 0, 0))
-        self.cells_per_length = dr.opaque(mi.Float, 3 ** 0.5 * max(rx, ry, rz) /
-                                          float(diagonal))
         self._line_depth = None     # line_optical_depth, once asked
         #: world length of a cell along x, y, z (host floats)
         origin = to_world @ mi.ScalarPoint3f(0, 0, 0)
