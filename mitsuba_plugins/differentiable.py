@@ -10,7 +10,7 @@ import mitsuba as mi
 
 from mitsuba_plugins.loop_state import traced_once
 from mitsuba_plugins.tracking import empty_scatter
-from mitsuba_plugins.tracking.replay import Replay
+from mitsuba_plugins.tracking.replay import Replay, ShadowStore
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.volume_loop import trace_volumes
 
@@ -40,12 +40,15 @@ class ReplayRender:
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         active = mi.Bool(active)
         if mode == dr.ADMode.Primal:
+            self.shadows = ShadowStore(self.seed, dr.width(ray), integrator.max_depth)
             with traced_once():
                 L, valid = trace_volumes(integrator, integrator.strategy, scene, sampler,
-                                         ray, medium, media, active)
+                                         ray, medium, media, active, shadows=self.shadows)
             L = integrator.sample_guard(L, active)      # NaN/Inf counted, as in primal renders
             return L, valid, [], (L, valid)
         L_primal, _ = state_in
+        # the primal pass runs as a kernel of its own: the replay reads what it stored
+        dr.eval(L_primal, self.shadows.values)
         # lanes the primal pass zeroed for NaN/Inf carry no derivative; lanes with no
         # valid ray (nothing hit, emitters hidden) still do: a denser medium on their
         # flights would scatter light toward them (the sub-path terms of
@@ -56,7 +59,8 @@ class ReplayRender:
                         empty_scatter.resolve(integrator.gradient_estimator, media))
         with traced_once():
             L, valid, grad = trace_volumes(integrator, integrator.strategy, scene, sampler,
-                                           ray, medium, media, active & keep, replay)
+                                           ray, medium, media, active & keep, replay,
+                                           shadows=self.shadows)
         if mode == dr.ADMode.Forward:
             return integrator.sample_guard(dr.select(keep, grad, 0.0), active), valid, [], None
         return L, valid, [], None

@@ -22,7 +22,7 @@ from mitsuba_plugins.path_vertex import EmitterSelection, emission_mis, emitter_
 from mitsuba_plugins.tracking import empty_scatter, equiangular
 from mitsuba_plugins.tracking.homogeneous import (FreeFlight, homogeneous_free_flight,
                                                   sample_exponential)
-from mitsuba_plugins.tracking.replay import replay_homogeneous, replay_vertex
+from mitsuba_plugins.tracking.replay import SUB_PATH_EVENT, replay_homogeneous, replay_vertex
 from mitsuba_plugins.tracking.scene_media import SceneMedia
 from mitsuba_plugins.tracking.shadow_rays import shadow_transmittance
 from mitsuba_plugins.tracking.trackers import Tracker, index_channel, medium_interaction
@@ -164,7 +164,7 @@ class VolumetricIntegrator(PathIntegrator):
 @dr.syntax
 def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                   medium: mi.MediumPtr, media: SceneMedia, active: mi.Bool, replay=None,
-                  guide=None):
+                  guide=None, shadows=None):
     """The path loop with media: ``(L, valid_ray)``. One iteration per vertex, a
     real collision in a medium or a surface (null surfaces included). ``integrator``
     supplies the settings (as in :func:`~mitsuba_plugins.path_loop.trace_surfaces`),
@@ -180,7 +180,11 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
 
     In a replay through a gray heterogeneous medium a path that ends goes on as the
     sub-path of one point where ``sigma_t = 0`` (:mod:`mitsuba_plugins.tracking.empty_scatter`):
-    its first vertex a real collision there, its light that term's ``L_s``."""
+    its first vertex a real collision there, its light that term's ``L_s``.
+
+    ``shadows`` (:class:`~mitsuba_plugins.tracking.replay.ShadowStore`, both passes of a
+    gradient render): shadow rays draw from streams of their own; the primal pass keeps
+    their estimates and the replay reads them instead of walking again."""
     emitters = EmitterSelection(scene, integrator.emitter_selection)
     bsdf_ctx = mi.BSDFContext()
     phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -223,6 +227,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
     empty = empty_scatter.for_replay(replay, media)
     forced = widened(mi.Bool(False), ray)            # a sub-path's first vertex: at ray.o
     dL_path = None if replay is None else replay.dL  # the adjoint (silenced in sub-paths)
+    event = None if shadows is None else widened(mi.UInt32(0), ray)  # iterations (store)
 
     while dr.hint(active, label="volpath_delta"):
         # ------------------------------ intersect ------------------------------
@@ -337,8 +342,20 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         wo = si.to_local(ds.d)
         shadow_medium = dr.select(on_surface & si.is_medium_transition() & ~at_point,
                                   si.target_medium(ds.d), medium)
-        T = shadow_transmittance(scene, media, nee_ref, ds, shadow_medium, sampler,
-                                 ctx.estimator, active_em, integrator.shadow_roulette)
+        if dr.hint(shadows is None, mode="scalar"):
+            T = shadow_transmittance(scene, media, nee_ref, ds, shadow_medium, sampler,
+                                     ctx.estimator, active_em, integrator.shadow_roulette)
+        else:
+            # a gradient render: the replay reads what the primal pass estimated
+            from_store = (active_em & shadows.stored(event)) if replay is not None \
+                else mi.Bool(False)
+            T = shadow_transmittance(scene, media, nee_ref, ds, shadow_medium,
+                                     shadows.numbers(event), ctx.estimator, active_em & ~from_store,
+                                     integrator.shadow_roulette)
+            if dr.hint(replay is None, mode="scalar"):
+                shadows.put(event, T, active_em)
+            else:
+                T = dr.select(from_store, shadows.get(event, from_store), T)
         if dr.hint(eq, mode="scalar"):   # the vertex's share of the two (balance heuristic)
             T *= equiangular.free_flight_weight(ray, si.t, eq_sigma_t, t_s, ds,
                                                 eq_lanes & scattered)
@@ -424,6 +441,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             alive &= kept
 
         # ------------------------------ advance ------------------------------
+        if dr.hint(shadows is not None, mode="scalar"):
+            event += 1
         active = alive & (real | null) & (depth < max_depth)
         active &= ~(scattered & (phase_pdf_s <= 0))
         if dr.hint(empty is not None, mode="scalar"):
@@ -436,6 +455,8 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             prev_delta[go] = True
             forced |= go
             active |= go
+            if dr.hint(shadows is not None, mode="scalar"):
+                event[go] = SUB_PATH_EVENT
 
     if dr.hint(replay is not None, mode="scalar"):
         if dr.hint(empty is not None, mode="scalar"):

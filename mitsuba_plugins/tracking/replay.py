@@ -127,6 +127,80 @@ def attached(fn):
         return fn()
 
 
+# -- the shadow rays' transmittance, estimated once per gradient render ----------------
+class ShadowNumbers:
+    """The random numbers of one vertex's shadow ray in a gradient render: a PCG32
+    stream seeded from the lane and the vertex (:meth:`ShadowStore.numbers`), not the
+    path's sampler, so that the replay may skip a shadow ray's walk (its estimate kept
+    from the primal pass) and still draw the path's numbers in step. Passed where a
+    sampler is (``next_1d``); a loop carries it as its state."""
+    DRJIT_STRUCT = {"rng": mi.PCG32}
+
+    def __init__(self, rng=None):
+        self.rng = rng
+
+    def next_1d(self, active=True) -> mi.Float:
+        return self.rng.next_float32(mi.Bool(active))
+
+
+#: Vertices of a path whose shadow-ray transmittance the store keeps (at most), and
+#: the store's memory cap: past them the replay estimates it again, with the same numbers
+STORED_VERTICES, STORE_BYTES = 16, 256 * 2**20
+#: The events of a replay's sub-path (tracking/empty_scatter.py) count from here: never
+#: stored, their numbers apart from the path's
+SUB_PATH_EVENT = 1 << 20
+#: Salt of the shadow rays' streams
+SALT_STREAM = 0x2545F491
+
+
+class ShadowStore:
+    """The shadow rays' transmittance estimates of one gradient render (both passes):
+    the primal pass writes each of a path's first :attr:`slots` emitter samples'
+    estimates (:meth:`put`); the replay, which needs them only to know the light
+    gathered before each event, reads them (:meth:`get`) instead of walking the
+    shadow ray again: 15-25% of a replay's time in heterogeneous media
+    (docs/benchmarks.md, seventeenth session). Where nothing is stored (later events,
+    a sub-path) the replay walks again with the same :class:`ShadowNumbers`, so its
+    estimate equals the primal's all the same. Events are the path loop's iterations
+    (null surfaces included), the same in both passes.
+
+    Memory: ``slots`` x lanes x channels floats, ``slots`` <= ``max_depth`` and
+    :data:`STORED_VERTICES`, the whole at most :data:`STORE_BYTES`."""
+
+    def __init__(self, seed, width: int, max_depth: int):
+        lane = dr.arange(mi.UInt32, width)
+        seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
+        self.key = mi.sample_tea_32(lane, seed + SALT_STREAM)[0]
+        self.lane = lane
+        channels = dr.size_v(mi.Spectrum)
+        depth = STORED_VERTICES if max_depth < 0 else min(max_depth, STORED_VERTICES)
+        self.slots = max(0, min(depth, STORE_BYTES // max(1, 4 * channels * width)))
+        self.values = dr.zeros(mi.Spectrum, width * self.slots) if self.slots else None
+
+    def numbers(self, event: mi.UInt32) -> ShadowNumbers:
+        """The stream of the shadow ray at ``event`` (a per-lane loop counter)."""
+        state, sequence = mi.sample_tea_32(self.key, event)
+        rng = mi.PCG32()
+        rng.seed(mi.UInt64(state) << 32 | mi.UInt64(sequence), mi.UInt64(self.lane))
+        return ShadowNumbers(rng)
+
+    def stored(self, event: mi.UInt32) -> mi.Bool:
+        return event < self.slots
+
+    def _index(self, event):
+        return self.lane * self.slots + event
+
+    def put(self, event: mi.UInt32, T: mi.Spectrum, active) -> None:
+        if self.slots:
+            dr.scatter(self.values, T, self._index(event), active & self.stored(event))
+
+    def get(self, event: mi.UInt32, active) -> mi.Spectrum:
+        if not self.slots:
+            return mi.Spectrum(0.0)
+        return dr.gather(mi.Spectrum, self.values, self._index(event),
+                         active & self.stored(event))
+
+
 # -- the transmittance of a shadow ray -------------------------------------------------
 def shadow_gradient(replay: Replay, media, medium: mi.MediumPtr, ray: mi.Ray3f,
                     t_max: mi.Float, after: mi.Spectrum, active) -> mi.Spectrum:

@@ -138,6 +138,35 @@ def test_shadow_rays_carry_the_transmittance_derivative(estimator):
         f"shadow-{estimator}")
 
 
+@pytest.mark.parametrize("estimator", ["drt", "sm"])
+@pytest.mark.parametrize("slots", [2, 16])
+def test_the_replay_gathers_what_the_primal_pass_gathered(monkeypatch, estimator, slots):
+    """The replay reads the shadow rays' transmittance the primal pass stored (the
+    first ``slots`` events of a path) and walks the later ones again with the same
+    numbers: the radiance it rebuilds sample by sample equals the primal pass's, or
+    every ``after`` it propagates would be wrong. Long paths (albedo 0.95, max_depth
+    40) pass the stored events."""
+    from mitsuba_plugins import differentiable
+    from mitsuba_plugins.tracking import replay as replay_module
+    monkeypatch.setattr(replay_module, "STORED_VERTICES", slots)
+    scene = base_scene(albedo=0.95)
+    integrator = mi.load_dict({"type": "volpath_delta", "max_depth": 40,
+                               "gradient_estimator": estimator})
+    sensor = scene.sensors()[0]
+    render = differentiable.ReplayRender(integrator, sensor, 5)
+    with dr.suspend_grad():
+        sampler, _ = render.prepare(sensor, 5, 16, [])
+        ray, _, _ = render.sample_rays(scene, sensor, sampler)
+        L, _, _, state = render.sample(dr.ADMode.Primal, scene, sampler.clone(), ray)
+        L_replay, _, _, _ = render.sample(dr.ADMode.Backward, scene, sampler, ray,
+                                          δL=dr.zeros(mi.Spectrum, dr.width(ray)),
+                                          state_in=state)
+        assert render.shadows.slots == slots
+        primal, replayed = np.array(L), np.array(L_replay)
+    assert np.all(np.isfinite(primal)) and np.mean(primal) > 0
+    np.testing.assert_allclose(replayed, primal, rtol=1e-5, atol=1e-7)
+
+
 def test_mitsuba_media(tmp_path):
     """Mitsuba's own heterogeneous (gridvolume) and homogeneous media: their extinction
     and albedo."""
