@@ -158,8 +158,8 @@ class ShadowStore:
     the primal pass writes each of a path's first :attr:`slots` emitter samples'
     estimates (:meth:`put`); the replay, which needs them only to know the light
     gathered before each event, reads them (:meth:`get`) instead of walking the
-    shadow ray again: 15-25% of a replay's time in heterogeneous media
-    (docs/benchmarks.md, seventeenth session). Where nothing is stored (later events,
+    shadow ray again: 2-7% of a step on the 64^3 cloud (docs/benchmarks.md,
+    seventeenth session). Where nothing is stored (later events,
     a sub-path) the replay walks again with the same :class:`ShadowNumbers`, so its
     estimate equals the primal's all the same. Events are the path loop's iterations
     (null surfaces included), the same in both passes.
@@ -172,10 +172,14 @@ class ShadowStore:
         seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
         self.key = mi.sample_tea_32(lane, seed + SALT_STREAM)[0]
         self.lane = lane
-        channels = dr.size_v(mi.Spectrum)
-        depth = STORED_VERTICES if max_depth < 0 else min(max_depth, STORED_VERTICES)
-        self.slots = max(0, min(depth, STORE_BYTES // max(1, 4 * channels * width)))
+        self.slots = self.capacity(width, max_depth)
         self.values = dr.zeros(mi.Spectrum, width * self.slots) if self.slots else None
+
+    @staticmethod
+    def capacity(width: int, max_depth: int) -> int:
+        """Events stored per lane for ``width`` lanes (0: none, every replay walks)."""
+        depth = STORED_VERTICES if max_depth < 0 else min(max_depth, STORED_VERTICES)
+        return max(0, min(depth, STORE_BYTES // (4 * dr.size_v(mi.Spectrum) * max(1, width))))
 
     def numbers(self, event: mi.UInt32) -> ShadowNumbers:
         """The stream of the shadow ray at ``event`` (a per-lane loop counter)."""

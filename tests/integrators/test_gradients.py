@@ -167,6 +167,21 @@ def test_the_replay_gathers_what_the_primal_pass_gathered(monkeypatch, estimator
     np.testing.assert_allclose(replayed, primal, rtol=1e-5, atol=1e-7)
 
 
+def test_the_shadow_store_stays_within_its_cap():
+    """The store keeps at most max_depth and STORED_VERTICES events per lane, within
+    STORE_BYTES; past that it keeps fewer, then none (every replay walks again)."""
+    from mitsuba_plugins.tracking.replay import STORE_BYTES, STORED_VERTICES, ShadowStore
+    per_event = 4 * dr.size_v(mi.Spectrum)
+    assert ShadowStore.capacity(1000, 8) == 8
+    assert ShadowStore.capacity(1000, -1) == ShadowStore.capacity(1000, 64) == STORED_VERTICES
+    assert ShadowStore.capacity(1000, 0) == 0
+    wide = STORE_BYTES // (per_event * 4)          # room for 4 events per lane
+    assert ShadowStore.capacity(wide, -1) == 4
+    assert ShadowStore.capacity(STORE_BYTES, -1) == 0
+    for width in (1, 1000, wide, 10 * wide):
+        assert ShadowStore.capacity(width, -1) * width * per_event <= STORE_BYTES
+
+
 def test_mitsuba_media(tmp_path):
     """Mitsuba's own heterogeneous (gridvolume) and homogeneous media: their extinction
     and albedo."""
