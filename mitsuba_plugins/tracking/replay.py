@@ -52,6 +52,13 @@ AD_FLAGS = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput | dr.ADFlag.AllowNoGra
 HASH_SALT = 0x9E3779B9
 
 
+def lane_keys(lane: mi.UInt32, seed, salt: int) -> mi.UInt32:
+    """A hashed key per lane for a render's ``seed``, apart for each ``salt``."""
+    # opaque: a literal seed would make every render with a new seed a new kernel
+    seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
+    return mi.sample_tea_32(lane, seed + salt)[0]
+
+
 def _bits(x: mi.Float) -> mi.UInt32:
     return dr.reinterpret_array(mi.UInt32, mi.Float(x))
 
@@ -70,10 +77,7 @@ class Replay:
         self.mode, self.dL, self.L_primal, self.estimator = mode, dL, L_primal, estimator
         #: the free flights' rule (:data:`GRADIENT_ESTIMATORS`)
         self.flight = GRADIENT_ESTIMATORS[estimator]()
-        lane = dr.arange(mi.UInt32, dr.width(L_primal))
-        # opaque: a literal seed would make every render with a new seed a new kernel
-        seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
-        self.key = mi.sample_tea_32(lane, seed + HASH_SALT)[0]
+        self.key = lane_keys(dr.arange(mi.UInt32, dr.width(L_primal)), seed, HASH_SALT)
 
     def ray_key(self, ray: mi.Ray3f, salt: int = 0) -> mi.UInt32:
         """A key for numbers along ``ray`` (its origin and direction hashed in)."""
@@ -168,10 +172,8 @@ class ShadowStore:
     :data:`STORED_VERTICES`, the whole at most :data:`STORE_BYTES`."""
 
     def __init__(self, seed, width: int, max_depth: int):
-        lane = dr.arange(mi.UInt32, width)
-        seed = dr.opaque(mi.UInt32, seed) if isinstance(seed, int) else mi.UInt32(seed)
-        self.key = mi.sample_tea_32(lane, seed + SALT_STREAM)[0]
-        self.lane = lane
+        self.lane = dr.arange(mi.UInt32, width)
+        self.key = lane_keys(self.lane, seed, SALT_STREAM)
         self.slots = self.capacity(width, max_depth)
         self.values = dr.zeros(mi.Spectrum, width * self.slots) if self.slots else None
 
@@ -199,10 +201,10 @@ class ShadowStore:
             dr.scatter(self.values, T, self._index(event), active & self.stored(event))
 
     def get(self, event: mi.UInt32, active) -> mi.Spectrum:
+        """The estimate kept at ``event`` (``active``: lanes where :meth:`stored`)."""
         if not self.slots:
             return mi.Spectrum(0.0)
-        return dr.gather(mi.Spectrum, self.values, self._index(event),
-                         active & self.stored(event))
+        return dr.gather(mi.Spectrum, self.values, self._index(event), active)
 
 
 # -- the transmittance of a shadow ray -------------------------------------------------
