@@ -99,9 +99,10 @@ def cell_index(x: mi.Vector3f, r: int) -> mi.UInt32:
 
 
 #: floats per cell of the records' accumulators, one array (``GuidingField.acc``): W, Vx,
-#: Vy, Vz, N, the records' count, and what the paths whose first vertex lies in the cell
-#: gathered beyond its direct light and in all (:meth:`GuidingField.record_flow`). A
-#: power of two, so that Dr.Jit's LLVM
+#: Vy, Vz, N, the records' count, the sum of the records' squared values (the noise of
+#: V, :meth:`GuidingField.update`) and one spare (what the paths whose first vertex lies
+#: in a cell gathered beyond its direct light and in all has an array of its own,
+#: :meth:`GuidingField.record_flow`). A power of two, so that Dr.Jit's LLVM
 #: backend adds a record with one packet scatter (``JitFlag.PacketOps``) instead of one
 #: scatter per sum (with the light grid's pairs, ``distance.LightGrid.acc``: the camera
 #: inside the cloud's training passes of 16 and 32 spp at 128x128 took 0.25 and 0.50 s
@@ -131,12 +132,17 @@ class GuidingField:
     """Spatial grid x one vMF lobe (plus a uniform share) per cell, over ``bbox`` (a
     ``mi.ScalarBoundingBox3f``)."""
 
+    #: whether a lobe's mean cosine is fitted to the part of ``|V|`` its records resolve
+    #: beyond their own noise (:meth:`update`); :class:`HistogramField` keeps the plain
+    #: fit, since its lobes only say which cells are trained
+    NOISE_AWARE = True
+
     def __init__(self, bbox, resolution: int = RESOLUTION):
         self.resolution = int(resolution)
         self.cells = self.resolution ** 3
         check_memory(self.resolution, getattr(self, "bins", 0))
         self.lo, self.inv_size = grid_box(bbox)
-        self.sums = np.zeros((self.cells, 5), np.float64)        # W, Vx, Vy, Vz, N
+        self.sums = np.zeros((self.cells, 6), np.float64)        # W, Vx, Vy, Vz, N, S2
         self.records = np.zeros(self.cells, np.int64)
         # what the last pass's paths gathered beyond their first vertex's direct light,
         # and in all (record_flow)
@@ -160,21 +166,32 @@ class GuidingField:
         self.fluence = mi.Float((np.zeros(self.cells) if fluence is None else fluence)
                                 .astype(np.float32))
         self.acc = dr.zeros(mi.Float, self.cells * ACC_STRIDE)     # record's accumulators
-        dr.eval(*self.mu, self.kappa, self.norm, self.fluence, self.acc)
+        self.acc_flow = dr.zeros(mi.Float, self.cells * 2)         # record_flow's pairs
+        dr.eval(*self.mu, self.kappa, self.norm, self.fluence, self.acc, self.acc_flow)
 
     def update(self) -> int:
         """Fold the records of the last pass into the lobes (host side, between passes);
-        returns how many cells have a lobe now."""
+        returns how many cells have a lobe now.
+
+        With :attr:`NOISE_AWARE`, the mean cosine is ``sqrt(max(|V|^2 - S2, 0)) / W``,
+        ``S2`` the sum of the records' squared values: for independent records ``E|V|^2
+        = |E V|^2 + sum Var(v_i)``, and ``S2`` estimates that sum (from above), so
+        records of light without direction (a dense medium of albedo near 1, where the
+        radiance is nearly isotropic) no longer fit a lobe to their own noise. Where
+        light has a direction ``|V|^2`` is far above ``S2`` and the lobe is the same."""
         acc = np.array(self.acc, np.float64).reshape(self.cells, ACC_STRIDE)
-        self.flow = acc[:, 6:8].sum(axis=0)
-        self.sums += acc[:, :5]
+        self.flow = np.array(self.acc_flow, np.float64).reshape(self.cells, 2).sum(axis=0)
+        self.sums[:, :5] += acc[:, :5]
+        self.sums[:, 5] += acc[:, 6]
         self.records += np.rint(acc[:, 5]).astype(np.int64)
         W, V, N = self.sums[:, 0], self.sums[:, 1:4], self.sums[:, 4]
         length = np.linalg.norm(V, axis=1)
+        resolved = np.sqrt(np.maximum(length * length - self.sums[:, 5], 0.0)) \
+            if self.NOISE_AWARE else length
         known = (self.records >= MIN_RECORDS) & (W > 0) & np.isfinite(W) & (N > 0)
         fitted = known & (length > 0)
         mu = np.where(fitted[:, None], V / np.where(length > 0, length, 1.0)[:, None], 0.0)
-        kappa = np.where(fitted, concentration(length / np.where(W > 0, W, 1.0)), 0.0)
+        kappa = np.where(fitted, concentration(resolved / np.where(W > 0, W, 1.0)), 0.0)
         kappa = np.where(kappa < FLAT, 0.0, kappa)     # below FLAT: uniform, no lobe
         self._upload(mu, kappa, np.where(known, W / np.where(N > 0, N, 1.0), 0.0))
         return int((kappa > 0).sum())
@@ -233,16 +250,16 @@ class GuidingField:
         vertices the record stands for) to ``cell``'s sums, and ``weight`` to its count."""
         ok = active & dr.isfinite(value) & (value >= 0)
         dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(
-            value, value * d.x, value * d.y, value * d.z, weight, 1.0), cell, ok)
+            value, value * d.x, value * d.y, value * d.z, weight, 1.0, value * value), cell, ok)
 
     def record_flow(self, cell: mi.UInt32, after: mi.Float, total: mi.Float,
                     active) -> None:
         """Add what a path gathered beyond its first recorded vertex's direct light (that
-        vertex lies in ``cell``) and in all to the accumulators' last two floats
+        vertex lies in ``cell``) and in all to ``cell``'s pair of :attr:`acc_flow`
         (:attr:`flow`, summed over cells by :meth:`update`)."""
         ok = active & dr.isfinite(total) & dr.isfinite(after)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(
-            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, after, total), cell, ok)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.acc_flow, packed(after, total, stride=2),
+                          cell, ok)
 
     def describe(self) -> str:
         return f"{self.resolution}^3 cells x one vMF lobe, {self.memory() / 2**20:.2f} MiB"
@@ -298,6 +315,10 @@ class HistogramField(GuidingField):
     weights do not compound over tens of vertices as a medium's do, so the histogram's
     resolution is worth its noise there (measured: docs/benchmarks.md); in media it is
     not (module docstring)."""
+
+    #: the plain moment fit: here the lobes only say which cells are trained, and the
+    #: surfaces' defaults were chosen with it
+    NOISE_AWARE = False
 
     def __init__(self, bbox, resolution: int = RESOLUTION, bins: int = BINS):
         self.bins = int(bins)
