@@ -21,7 +21,9 @@ the kernels gather from, so a field that learns never recompiles a kernel.
 Learning: each recorded vertex adds ``Li(w) / p(w)`` (the radiance the path gathered
 after the vertex along the sampled direction ``w``, over the density that drew it) to
 ``W`` and that times ``w`` to ``V``: unbiased estimates of ``int Li`` and ``int Li w``.
-Cells with fewer than ``MIN_RECORDS`` records stay uniform.
+Cells with fewer than ``MIN_RECORDS`` records stay uniform. The mean cosine counts only
+the part of ``|V|`` that the records resolve beyond their own noise
+(:meth:`GuidingField.update`).
 
 Surfaces (``path_rr``) use :class:`HistogramField` instead: a surface path's weights do
 not compound over tens of vertices, so there the histogram's resolution is worth its noise.
