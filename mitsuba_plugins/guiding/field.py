@@ -61,11 +61,11 @@ MAX_BYTES = 64 << 20
 
 def field_bytes(resolution: int, bins: int = 0) -> int:
     """Bytes of a field of ``resolution^3`` cells: per cell a lobe (4 floats), its fluence,
-    :data:`ACC_STRIDE` accumulators (5 sums, a record count, 2 sums of the paths' light)
-    on the device, 5 sums and a count on the host;
+    :data:`ACC_STRIDE` accumulators (5 sums, a record count, the squared values' sum, a
+    spare) and 2 sums of the paths' light on the device, 6 sums and a count on the host;
     with ``bins`` (:class:`HistogramField`) ``bins^2`` bins of 4 words on the device
     (probability, cumulative, guide table, accumulator) and a double on the host."""
-    return resolution ** 3 * (4 * 4 + 4 + ACC_STRIDE * 4 + 5 * 8 + 8 +
+    return resolution ** 3 * (4 * 4 + 4 + ACC_STRIDE * 4 + 2 * 4 + 6 * 8 + 8 +
                               bins * bins * (4 * 4 + 8))
 
 
