@@ -295,6 +295,24 @@ def render_variant(scene, integ, variant, spp: int, seed: int):
     return timed_render(scene, integ, spp, seed)
 
 
+def guiding_summary(report) -> dict:
+    """What one guided render did (``guided_render.GuidingReport``): its passes, the first
+    pass's share of light beyond the first vertex's direct light, and whether it went on
+    unguided (one plain pass: too few training paths; or the share below ``MIN_SHARE``)."""
+    return {"passes": list(report.passes), "share": report.share,
+            "guided": len(report.passes) > 1 and not report.skipped}
+
+
+def guided_runs_note(e: dict) -> str:
+    """`` (guided in a of b runs)`` for a configuration whose renders were not all guided
+    (``equal_time``'s ``guiding_runs``), else ``""``."""
+    runs = e.get("guiding_runs")
+    if not runs:
+        return ""
+    done = sum(r["guided"] for r in runs)
+    return "" if done == len(runs) else f" (guided in {done} of {len(runs)} runs)"
+
+
 def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = BUILTIN) -> dict:
     integ = {"builtin": mi.load_dict(builtin), **{k: integrator(v) for k, v in variants.items()}}
     variant = {"builtin": None, **variants}
@@ -308,8 +326,15 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = 
     for k, i in integ.items():       # the sample count is a literal of every kernel: compile
         render_variant(scene, i, variant[k], n[k], seed=10 ** 6 + 2)    # at n[k] first
         take_invalid_samples(i)      # the timed runs' NaN/Inf samples only, below
-    times, images = alternate(integ, runs, lambda k, run: render_variant(
-        scene, integ[k], variant[k], n[k], seed=run))
+    guided = {k: [] for k in integ}      # per timed run of a guided render: what it did
+
+    def timed(k, run):
+        out = render_variant(scene, integ[k], variant[k], n[k], seed=run)
+        report = getattr(integ[k], "guiding_report", None)
+        if report is not None:
+            guided[k].append(guiding_summary(report))
+        return out
+    times, images = alternate(integ, runs, timed)
     for k in integ:
         assert all(np.isfinite(img).all() for img in images[k]), f"{k}: non-finite pixels"
     # NaN/Inf samples our plugins zeroed and counted in the timed runs (None: the built-in,
@@ -334,6 +359,8 @@ def equal_time(scene, variants: dict, spp: int, runs: int, ref, builtin: dict = 
                   "rel_mse_raw": float(np.mean(raw[k])),
                   "efficiency": stats.efficiency(e, t), "s_per_spp": per_spp[k],
                   "nan_inf_samples": invalid[k]}
+        if guided[k]:
+            out[k]["guiding_runs"] = guided[k]
     base = out["builtin"]
     for k in variants:
         r = out[k]

@@ -220,7 +220,8 @@ def markdown(result: dict) -> str:
                     f"**{e[v]['efficiency_ratio']:.2f}x** ({e[v]['efficiency_ratio_90'][0]:.2f}-"
                     f"{e[v]['efficiency_ratio_90'][1]:.2f}), "
                     f"{dense.time_per_sample_ratio(e, v):.2f}, "
-                    f"{e[v]['rel_mse_per_sample_ratio']:.2f}" for v in variants) + " |")
+                    f"{e[v]['rel_mse_per_sample_ratio']:.2f}{dense.guided_runs_note(e[v])}"
+                    for v in variants) + " |")
         lines.append("")
         for v in variants:
             s = summary(rows, v, half)

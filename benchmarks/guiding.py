@@ -296,7 +296,8 @@ def markdown(result: dict) -> str:
             lo, hi = e["efficiency_ratio_90"]
             raw = f" (raw {e['efficiency_ratio_raw']:.2f}x)" if "efficiency_ratio_raw" in e else ""
             cells.append(f"{e['efficiency_ratio']:.2f}x [{lo:.2f}, {hi:.2f}]{raw}, "
-                         f"{e['rel_mse_per_sample_ratio']:.2f}/sample, {e['spp']} spp")
+                         f"{e['rel_mse_per_sample_ratio']:.2f}/sample, {e['spp']} spp"
+                         f"{dense.guided_runs_note(e)}")
         lines.append(f"| {name} | {r['set']} | " + " | ".join(cells) + " |")
     counts = {c: [r["efficiency"][c].get("nan_inf_samples") for r in result["scenes"].values()]
               for c in cfg["configs"]}

@@ -719,3 +719,25 @@ def test_memory_is_bounded_and_reported():
                         rel_tol=0.01)
     with pytest.raises(Exception, match="guiding_resolution.*guiding_bins.*64 MiB"):
         mi.load_dict({"type": "path_rr", "guiding": "surfaces", "guiding_resolution": 32})
+
+
+def test_benchmarks_log_whether_each_timed_render_was_guided(monkeypatch):
+    """The equal-time benchmarks record, per timed run of a guided configuration, its
+    passes and whether it trained and guided (``benchmarks.dense.guiding_summary``), and
+    their tables say where not every run was guided: at equal time a guided render's
+    sample count can fall below ``MIN_TRAINING_PATHS`` paths of training, and it then
+    renders one plain pass."""
+    from benchmarks import dense
+    monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", DEFAULT_MIN_TRAINING_PATHS)
+    scene = media_scene(homogeneous(1.5, albedo=0.8), env=0)
+    integrator = mi.load_dict(GUIDED)
+    runs = []
+    for spp in (64, 1024):
+        mi.render(scene, integrator=integrator, spp=spp, seed=1)
+        runs.append(dense.guiding_summary(integrator.guiding_report))
+    assert runs[0] == {"passes": [64], "share": None, "guided": False}
+    assert runs[1]["guided"] and sum(runs[1]["passes"]) == 1024
+    assert 0 < runs[1]["share"] <= 1
+    assert dense.guided_runs_note({"guiding_runs": runs}) == " (guided in 1 of 2 runs)"
+    assert dense.guided_runs_note({"guiding_runs": runs[1:]}) == ""
+    assert dense.guided_runs_note({}) == ""
