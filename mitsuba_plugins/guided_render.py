@@ -111,8 +111,15 @@ MIN_TRAINING_PATHS = 1 << 16
 #: per pixel (16,384 paths), so the default schedule of five passes (1, 2, 4, 8, 49 spp at
 #: 64 spp) spent most of a guided render on them: 47 spp in the time unguided rendered 223
 #: (docs/benchmarks.md, "Guiding on a GPU"). From 2^21 paths a pass's paths cost several
-#: times its fixed cost; the LLVM backend (~50x slower per path) needs no floor.
-MIN_PASS_PATHS = {"cuda": 1 << 21, "llvm": 0}
+#: times its fixed cost. On the LLVM backend (~50x slower per path) the same holds for
+#: small images: at 32x32 a pass costs about 6 ms beside its paths, as much as 2-10 spp of
+#: the dense family's scenes. 2^15 was chosen on the dense family's tuning half (32x32, 256
+#: spp: passes 2, 32, 222 instead of 2, 4, 8, 16, 32, 194), guided efficiency over no
+#: floor, 8 renders each at equal spp: the six grids 1.03-1.13 (median 1.08), the six
+#: homogeneous scenes 0.92-1.61 (median 1.00); the volume tuning set at 64x64 and 64 spp
+#: (1, 8, 55 spp): 0.92-1.06 (median 1.05). From 128x128 at 64 spp it changes nothing
+#: (docs/benchmarks.md, nineteenth session).
+MIN_PASS_PATHS = {"cuda": 1 << 21, "llvm": 1 << 15}
 
 
 #: the share of a path's light that guided directions can change, below which a render

@@ -278,6 +278,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             # once-scattered light is (guiding.distance), not at its free-flight vertex
             gd_lanes = active & (medium != None) & medium.is_homogeneous() \
                 & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
+            gd_lanes &= guide.light.takes(mi.Bool(True), ctx.drawn[2])
             gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], t_end, smooth,
                                      gd_lanes, sampler.next_1d(gd_lanes))
             gd_beta = beta * gd_point.factor
@@ -386,9 +387,12 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             # a segment that passed through the medium gathered light: the pixel saw it
             valid_ray |= at_point
         if dr.hint(learn_light, mode="scalar"):
-            guide.light.record(nee_ref.p, dr.select(active_em, nee, 0.0),
-                               (nee_medium & active_next & ~handled) | at_point if gd
-                               else nee_medium & active_next)
+            recorded = (nee_medium & active_next & ~handled) | at_point if gd \
+                else nee_medium & active_next
+            if dr.hint(ctx.drawn is not None, mode="scalar"):   # dense homogeneous media not
+                in_homogeneous = (medium != None) & medium.is_homogeneous()  # noqa: E711
+                recorded &= guide.light.takes(in_homogeneous, ctx.drawn[2])
+            guide.light.record(nee_ref.p, dr.select(active_em, nee, 0.0), recorded)
         if dr.hint(replay is not None, mode="scalar"):
             def vertex_value(d_world, wo_local):
                 """The phase (medium) or BSDF (surface) value towards a direction, as a

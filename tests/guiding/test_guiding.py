@@ -38,14 +38,17 @@ def _fresh_kernels_after():
 
 #: the rule's own value (the fixture below lowers it for every other test)
 DEFAULT_MIN_TRAINING_PATHS = guided_render.MIN_TRAINING_PATHS
+DEFAULT_CPU_MIN_PASS_PATHS = guided_render.MIN_PASS_PATHS["llvm"]
 
 
 @pytest.fixture(autouse=True)
 def _guide_small_images(monkeypatch):
     """This module's images are small (32x32 and less): guide them anyway
-    (``guided_render.MIN_TRAINING_PATHS`` would render them in one plain pass; its own
-    test sets it back)."""
+    (``guided_render.MIN_TRAINING_PATHS`` would render them in one plain pass), with the
+    CPU's training passes unmerged (``MIN_PASS_PATHS``, whose floor would leave a 64-spp
+    render of 32x32 one training pass); their own tests set them back."""
     monkeypatch.setattr(guided_render, "MIN_TRAINING_PATHS", 0)
+    monkeypatch.setitem(guided_render.MIN_PASS_PATHS, "llvm", 0)
 
 
 def _accumulate(field, sums, records):
@@ -286,9 +289,22 @@ def _lamp_under_sky():
     return mi.load_dict(d)
 
 
+def _cube_pair(dense: float = 300.0):
+    """A dense cube (optical depth ``dense`` across one side) beside a thin one, under the
+    small light: cells of the light grid straddle both, and the dense cube's segments take
+    no guided points (``LightGrid.takes``) while the thin one's do."""
+    null = {"type": "null"}
+    return media_scene(env=0, extra={
+        "dense": {"type": "cube", "bsdf": null, "interior": homogeneous(dense, albedo=0.9),
+                  "to_world": mi.ScalarTransform4f().translate([-0.55, 0, 0]).scale(0.5)},
+        "thin": {"type": "cube", "bsdf": null, "interior": homogeneous(1.0, albedo=0.9),
+                 "to_world": mi.ScalarTransform4f().translate([0.55, 0, 0]).scale(0.5)}})
+
+
 CASES = {"dense_ball": _dense_ball, "chromatic_ball": _chromatic_ball, "smoke": _smoke,
          "camera_inside": _camera_inside, "lit_fog": _lit_fog, "thin_fog": _thin_fog,
-         "microflake_fog": _microflake_fog, "lamp_under_sky": _lamp_under_sky}
+         "microflake_fog": _microflake_fog, "lamp_under_sky": _lamp_under_sky,
+         "cube_pair": _cube_pair}
 
 
 def _vectors(a: np.ndarray) -> mi.Vector3f:
@@ -741,3 +757,49 @@ def test_benchmarks_log_whether_each_timed_render_was_guided(monkeypatch):
     assert dense.guided_runs_note({"guiding_runs": runs}) == " (guided in 1 of 2 runs)"
     assert dense.guided_runs_note({"guiding_runs": runs[1:]}) == ""
     assert dense.guided_runs_note({}) == ""
+
+
+def test_dense_media_beside_thin_ones_steer_no_guided_points():
+    """A homogeneous medium whose optical depth across a light-grid cell exceeds
+    ``MAX_CELL_DEPTH`` takes no guided points and records nothing into the light grid
+    (``LightGrid.takes``): after a guided render of a dense cube beside a thin one, the
+    cells wholly inside the dense cube hold no records and those inside the thin one do.
+    Recorded there, the dense cube's dark interior was learnt for the cells it shares with
+    the thin cube."""
+    integrator = mi.load_dict(GUIDED)
+    mi.render(_cube_pair(), integrator=integrator, spp=64, seed=4)
+    light = integrator.guiding_report.light
+    assert light is not None
+    r = light.resolution
+    lo = np.array(light.lo)
+    size = 1.0 / np.array(light.inv_size)
+    idx = np.arange(r ** 3)
+    ijk = np.stack([idx % r, (idx // r) % r, idx // (r * r)], 1)
+    a, b = lo + ijk * size / r, lo + (ijk + 1) * size / r      # each cell's box
+    counts = light.sums[:, 1]
+
+    def inside(box_lo, box_hi):
+        return np.all((a >= box_lo) & (b <= box_hi), axis=1)
+    in_dense = inside(np.array([-1.05, -0.5, -0.5]), np.array([-0.05, 0.5, 0.5]))
+    in_thin = inside(np.array([0.05, -0.5, -0.5]), np.array([1.05, 0.5, 0.5]))
+    assert in_dense.sum() > 20 and in_thin.sum() > 20
+    assert counts[in_dense].sum() == 0, counts[in_dense].sum()
+    assert (counts[in_thin] > 0).mean() > 0.9
+    sigma = np.array([300.0, 1.0], np.float32)
+    takes = np.array(light.takes(mi.Bool([True, True]), mi.Spectrum(mi.Float(sigma))))
+    assert list(takes) == [False, True]
+    assert list(np.array(light.takes(mi.Bool([False]), mi.Spectrum(mi.Float(1e6))))) == [True]
+
+
+def test_small_images_merge_their_training_passes_on_the_cpu():
+    """On the CPU every pass after the first traces at least 2^15 paths
+    (``MIN_PASS_PATHS``): 32x32 at 256 spp trains in passes of 2 and 32 spp, 64x64 at 64
+    spp in 1 and 8; from 128x128 the doubling schedule is unchanged."""
+    schedule = guided_render.schedule
+
+    def floor(pixels):        # min_pass_spp on the LLVM backend, whichever this variant's
+        return max(1, -(-DEFAULT_CPU_MIN_PASS_PATHS // pixels))
+    assert DEFAULT_CPU_MIN_PASS_PATHS == 1 << 15
+    assert schedule(256, 0.25, 32 * 32, floor(32 * 32)) == [2, 32, 222]
+    assert schedule(64, 0.25, 64 * 64, floor(64 * 64)) == [1, 8, 55]
+    assert schedule(64, 0.25, 128 * 128, floor(128 * 128)) == [1, 2, 4, 8, 49]
