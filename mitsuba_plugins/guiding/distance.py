@@ -222,7 +222,7 @@ class LightGrid:
         points must not be recorded either: a cell that also holds a thin medium (a
         dense cube beside a near-empty one, which one cell of the grid over both
         straddles) would learn the dense medium's dark interior for both (measured on
-        the dense family's tuning22_cube_pair_inside: 1.64x the variance of guiding
+        the dense family's tuning22_cube_pair_inside: 1.66x the variance of guiding
         without guided distances, whose points the dense cube's records had steered)."""
         return ~homogeneous | (mi.Spectrum(sigma_t)[0] < self.max_sigma)
 
