@@ -397,9 +397,9 @@ def test_guided_renders_estimate_the_same_image(case, monkeypatch):
     """Guided (training passes included) against unguided ``volpath_delta``, 8 passes of 64
     spp each against 16 of 64, disjoint seeds; max_depth 16. The camera inside the cloud
     renders with the GPU's schedule (training merged into one 8-spp pass after the first:
-    1, 8, 55 spp), the other cases with the CPU's (1, 2, 4, 8, 49). ``lobe_candidates``:
-    resampling also draws 2 candidates from the lobes (15 of the 64 cells concentrated
-    enough after training)."""
+    1, 8, 55 spp), the other cases with the unmerged one (1, 2, 4, 8, 49: the fixture).
+    ``lobe_candidates``: resampling also draws 2 candidates from the lobes (15 of the 64
+    cells concentrated enough after training)."""
     if case == "camera_inside":
         monkeypatch.setattr(guided_render, "min_pass_spp", lambda pixels: 8)
         assert guided_render.schedule(64, guided_render.TRAINING, 32 * 32, 8) == [1, 8, 55]
