@@ -248,8 +248,9 @@ class GuidingField:
 
     def record(self, cell: mi.UInt32, d: mi.Vector3f, value: mi.Float, active,
                weight=1.0) -> None:
-        """Add ``value`` (``Li / p`` of one vertex along ``d``, times ``weight``: the
-        vertices the record stands for) to ``cell``'s sums, and ``weight`` to its count."""
+        """Add ``value`` (``Li / p`` of one vertex along ``d``, or ``f cos Li / p`` at a
+        surface, times ``weight``: the vertices the record stands for) to ``cell``'s
+        sums, and ``weight`` to its count."""
         ok = active & dr.isfinite(value) & (value >= 0)
         dr.scatter_reduce(dr.ReduceOp.Add, self.acc, packed(
             value, value * d.x, value * d.y, value * d.z, weight, 1.0, value * value), cell, ok)
@@ -308,9 +309,11 @@ class HistogramField(GuidingField):
     covers ``4 pi / bins^2`` sr), mixed with the uniform distribution (:data:`BIN_UNIFORM`).
     Sampling picks a bin by its cell's cumulative table (a guide table into it) and a
     point uniformly in it, so the density is the bin's probability over its solid angle:
-    exact. Bin ``b`` of a cell learns the sum of its records' ``Li / p``, an unbiased
-    estimate of the radiance integrated over the bin. The lobe's moments are still
-    fitted (they say which cells are trained, and the fluence).
+    exact. Bin ``b`` of a cell learns the sum of its records' values: ``path_rr``'s
+    surface records are ``f cos Li / p`` (``path_loop.SURFACE_PRODUCT``), an unbiased
+    estimate of the reflected light's integrand integrated over the bin, so the histogram
+    follows the product of incident light and BSDF that the mixture samples toward. The
+    lobe's moments are still fitted (they say which cells are trained).
 
     Why for surfaces: where light arrives through a narrow opening one lobe per cell is
     too broad (mean cosines 0.2-0.5 in a room lit through a slit). A surface path's

@@ -283,7 +283,7 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     the BSDF's own sample ``bs``; one-sample MIS, pdf ``(1 - a) p_bsdf + a g``. Surface
     paths are short, so the mixture's weights (at most ``1 / (1 - a)`` times the BSDF's)
     do not compound as they do over a walk in a medium. Returns ``(pdf of d_light, the
-    sample, its weight, f(y), gain)`` (``gain``: the BSDF's own weight of the sample
+    sample, its weight, gain)`` (``gain``: the BSDF's own weight of the sample
     over the mixture's, ``pdf / p_bsdf``, for the roulette): the mixture pdf of the emitter sample's direction is the
     BSDF side of next-event estimation's MIS, and the sample's ``pdf`` that of emission
     found by the new ray."""
@@ -313,8 +313,6 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
                                     bs.sampled_type)
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     gain = dr.select(guided & (p_bsdf > 0), pdf / dr.maximum(p_bsdf, 1e-30), 1.0)
-    f_wo = dr.select(guided, mi.Float(dr.mean(mi.Spectrum(f))),
-                     mi.Float(dr.mean(mi.Spectrum(weight))) * bs.pdf)
     p_light = dr.select(guided, dr.lerp(p_light, folded(si.to_local(d_light)), alpha),
                         p_light)
-    return p_light, sample, mi.Spectrum(mixed_weight), f_wo, gain
+    return p_light, sample, mi.Spectrum(mixed_weight), gain
