@@ -51,7 +51,8 @@ class Estimate:
     #: neighbouring pixels, whose errors then correlate: the Cornell box's 8x8 block means
     #: vary 1.4-1.9x (median 1.7x) and its image mean 1.45x more than the pixels' standard
     #: errors say if taken as independent (64 passes of 16 spp, 32x32; the box-filtered
-    #: smoke 0.92-1.26x, median 1.03x).
+    #: smoke 0.92-1.26x, median 1.03x). :func:`block_estimate` and :func:`image_mean_se`
+    #: take the larger of these and the pixels' independent formula.
     block_se: dict = field(default_factory=dict)
     mean_se: np.ndarray | None = None
 
@@ -166,23 +167,27 @@ def _block_view(x: np.ndarray, block: int) -> np.ndarray:
 
 
 def block_estimate(e: Estimate, block: int) -> Estimate:
-    """Means over ``block x block`` pixel blocks; their standard errors from the passes'
-    block means where ``e`` has them (:attr:`Estimate.block_se`), else from the pixels'
-    as if independent."""
+    """Means over ``block x block`` pixel blocks. Their standard errors: from the pixels'
+    as if independent, or, where ``e`` has them (:attr:`Estimate.block_se`) and they are
+    larger, from the passes' block means. Not the passes' alone: from 8-16 passes a
+    block's standard error is itself noisy, and most often too small where a few
+    fireflies carry the variance (the spectral smoke's guided render, 8 passes, failed a
+    block at |t| 5.04 with it; the pixels' formula pools 64 of them). Not the pixels'
+    alone: correlated pixels (:attr:`Estimate.block_se`)."""
     mean = _block_view(e.mean, block).mean(axis=(2, 3))
-    se = e.block_se.get(block)
-    if se is None:
-        se = np.sqrt((_block_view(e.se, block) ** 2).sum(axis=(2, 3))) / block ** 2
+    se = np.sqrt((_block_view(e.se, block) ** 2).sum(axis=(2, 3))) / block ** 2
+    if block in e.block_se:
+        se = np.maximum(se, e.block_se[block])
     return Estimate(mean, se, e.passes, e.spp_per_pass)
 
 
 def image_mean_se(e: Estimate) -> np.ndarray:
-    """Standard error of the image mean per channel: from the passes' image means where
-    ``e`` has them (:attr:`Estimate.mean_se`), else from the pixels' as if independent."""
-    if e.mean_se is not None:
-        return e.mean_se
+    """Standard error of the image mean per channel: from the pixels' as if independent,
+    or from the passes' image means where ``e`` has them (:attr:`Estimate.mean_se`) and
+    that is larger (as :func:`block_estimate`)."""
     n = e.mean.shape[0] * e.mean.shape[1]
-    return np.sqrt((e.se ** 2).reshape(n, -1).sum(axis=0)) / n
+    se = np.sqrt((e.se ** 2).reshape(n, -1).sum(axis=0)) / n
+    return se if e.mean_se is None else np.maximum(se, e.mean_se)
 
 
 @dataclass
