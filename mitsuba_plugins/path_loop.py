@@ -11,6 +11,14 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_plugins.guiding.sampling import Records, mix_surface, still_guided
+from mitsuba_plugins.loop_state import traced_once, widened
+from mitsuba_plugins.mis import MIS
+from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
+from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
+                                         emitter_contribution, sample_emitter)
+from mitsuba_plugins.validity import SampleGuard
+
+VARIANT = mi.variant()
 
 #: what a surface vertex records, as the ``f_wo`` of :meth:`Records.add` (which divides
 #: the light gathered after the vertex by ``beta f_wo``): 1, so a record is ``f cos Li /
@@ -22,14 +30,6 @@ from mitsuba_plugins.guiding.sampling import Records, mix_surface, still_guided
 #: each alternating, 0.52 and 0.54 -> 0.48 and 0.47 per sample, 1.24x and 1.19x -> 1.39x
 #: and 1.36x ``path``.
 SURFACE_PRODUCT = 1.0
-from mitsuba_plugins.loop_state import traced_once, widened
-from mitsuba_plugins.mis import MIS
-from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
-from mitsuba_plugins.path_vertex import (EmitterSelection, RussianRoulette, emission_mis,
-                                         emitter_contribution, sample_emitter)
-from mitsuba_plugins.validity import SampleGuard
-
-VARIANT = mi.variant()
 
 #: Largest allowed ``rr_max_survival``: below 1 so that a path in a medium of albedo 1
 #: still ends (expected length after ``rr_depth`` at most 1 / (1 - 0.9999) vertices).
