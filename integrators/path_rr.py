@@ -73,6 +73,13 @@ class PathRR(PathIntegrator):
        - |int|
        - Directions per cell: a histogram of ``guiding_bins``^2 equal-area bins over the
          sphere, in [0, 64]; 0: one von Mises-Fisher lobe per cell. (Default: 16)
+     * - guiding_nee
+       - |bool|
+       - With ``guiding``: each cell of the field also learns how much its emitter samples
+         bring against the light its sampled directions bring, and a vertex there samples
+         an emitter with the probability that minimises variance times time, in [0.05, 1]
+         (weighted by its inverse, and in the MIS weights; docs/method.md section 13).
+         (Default: true)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)
@@ -97,7 +104,7 @@ class PathRR(PathIntegrator):
     NAME = "path_rr"
     PARAMETERS = ("rr_rule", "rr_survival", "rr_min_survival", "emitter_selection",
                   "guiding", "guiding_fraction", "guiding_training", "guiding_resolution",
-                  "guiding_bins")
+                  "guiding_bins", "guiding_nee")
 
     def configure(self, p):
         self.rr = RussianRoulette(
@@ -110,6 +117,7 @@ class PathRR(PathIntegrator):
         guided_render.configure(self, p, ("surfaces",), resolution=8)
         self.guiding_fraction = p.float("guiding_fraction", FRACTION, lo=0.0, hi=0.9)
         self.guiding_bins = p.int("guiding_bins", BINS, lo=0, hi=64)
+        self.guiding_nee = p.bool("guiding_nee", True)
         check_memory(self.guiding_resolution, self.guiding_bins)
 
     def to_string(self):

@@ -26,6 +26,7 @@ import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mitsuba_plugins.guiding import distance
 from mitsuba_plugins.guiding.field import (GuidingField, HistogramField, media_bounds,
@@ -59,8 +60,15 @@ class GuidedPass:
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
                  fraction: float = 0.0, roulette: float = 0.0, light=None,
-                 symmetric: bool = False, media=None, lobe: int = 0):
+                 symmetric: bool = False, media=None, lobe: int = 0, nee: bool = False):
         self.field, self.sampling, self.recording = field, sampling, recording
+        # sampling passes take emitter samples with the field's learnt probability
+        # (path_rr's guiding_nee, GuidingField.nee_probabilities)
+        self.nee = nee
+        # per pixel, one over its squared value as the passes so far estimate it
+        # (pixel_weights; None in the first pass), and per lane of the pass (set by the
+        # pass before it traces: _PassRender.sample)
+        self.pixel_weight, self.lane_weight = None, None
         self.candidates, self.fraction, self.roulette = candidates, fraction, roulette
         self.lobe = lobe           # resampling candidates drawn from the field itself
         self.light = light         # guiding.distance.LightGrid, or None
@@ -85,6 +93,11 @@ class _PassRender:
         return []
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
+        guide = self.guide
+        if guide is not None and guide.recording and guide.pixel_weight is not None:
+            # lane i traces pixel i // spp (ADIntegrator.sample_rays)
+            pixel = dr.arange(mi.UInt32, dr.width(ray.o)) // sampler.sample_count()
+            guide.lane_weight = dr.gather(mi.Float, guide.pixel_weight, pixel)
         # the plugin's own sample (its loop: surfaces or volumes), with this pass's guide
         L, valid, _ = self.integrator.sample(scene, sampler, ray, self.sensor.get_medium(),
                                              mi.Bool(active), guide=self.guide)
@@ -169,6 +182,34 @@ class GuidingReport:
         self.light = None      # the light grid learnt (guiding_distance)
 
 
+#: :func:`pixel_weights`: the box filter's radius (pixels) and the floor, a share of the
+#: image's mean, under which a pixel's smoothed value does not fall
+PIXEL_RADIUS = 2
+PIXEL_FLOOR = 0.05
+
+
+def pixel_weights(image: np.ndarray) -> mi.Float:
+    """Per pixel (row-major), ``1 / v^2`` with ``v`` its value (channels averaged) in the
+    passes' ``image`` so far, smoothed by a box of side ``2 PIXEL_RADIUS + 1`` and at least
+    ``PIXEL_FLOOR`` times the image's mean: a path's squared light over this weighs it
+    as relMSE weighs its pixel's error (``GuidingField.record_nee``). The box and the
+    floor keep a noisy or black pixel of a few samples from weighing thousands of
+    times its neighbours; a black image weighs every pixel 1."""
+    lum = np.asarray(image, np.float64)
+    if lum.ndim == 3:        # RGB (and alpha) or a value (and alpha)
+        lum = lum[..., :3 if lum.shape[-1] >= 3 else 1].mean(axis=-1)
+    lum = np.where(np.isfinite(lum), lum, 0.0)
+    r = PIXEL_RADIUS
+    padded = np.pad(lum, r, mode="edge")
+    c = np.cumsum(np.cumsum(np.pad(padded, ((1, 0), (1, 0))), axis=0), axis=1)
+    k = 2 * r + 1
+    box = (c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]) / (k * k)
+    if not lum.mean() > 0:            # no light seen yet: every pixel alike
+        return mi.Float(np.ones(lum.size, np.float32))
+    v = np.maximum(box, PIXEL_FLOOR * lum.mean())
+    return mi.Float((1.0 / (v * v)).ravel().astype(np.float32))
+
+
 def _pass_seed(seed, k: int) -> int:
     """The seed of pass ``k > 0``: TEA of the render's seed and ``k``, on the host where
     the seed is a Python integer (the vector overload launches a kernel and waits)."""
@@ -209,6 +250,7 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     report.memory = field.memory() + (light.memory() if light is not None else 0)
     report.field, report.light = field, light
     image, t0, k = None, time.perf_counter(), 0
+    seen, seen_spp = None, 0     # every pass's image so far, for pixel_weights
     while k < len(plan):
         n, last = plan[k], k == len(plan) - 1
         if last:
@@ -219,7 +261,10 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                        lobe=getattr(integrator, "guiding_lobe", 0),
                        fraction=getattr(integrator, "guiding_fraction", 0.0),
                        roulette=getattr(integrator, "guiding_roulette", 0.0),
-                       light=light, symmetric=symmetric, media=media_needs)
+                       light=light, symmetric=symmetric, media=media_needs,
+                       nee=getattr(integrator, "guiding_nee", False))
+        if guide is not None and guide.nee and seen is not None:
+            guide.pixel_weight = pixel_weights(seen / seen_spp)
         pass_seed = seed if k == 0 else _pass_seed(seed, k)
         img = _PassRender(integrator, sensor, guide).render(scene, sensor, pass_seed, n)
         if k > 0:        # the first pass only trains (module docstring)
@@ -227,6 +272,9 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
             image = img * w if image is None else image + img * w
         if not last:
             dr.eval(image)
+            if guide is not None and guide.nee:
+                seen = (0.0 if seen is None else seen) + np.asarray(img, np.float64) * n
+                seen_spp += n
             report.cells_guided = field.update()
             if light is not None:
                 light.update()

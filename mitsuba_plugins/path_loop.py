@@ -111,6 +111,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     recording = guide is not None and guide.recording
     records = Records() if recording else None       # the field's training records
     gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)
+    learnt_nee = guided and guide.nee                # emitter samples with learnt probability
+    prev_q = mi.Float(1.0) if learnt_nee else 1.0    # ... at the previous vertex
     pi = scene.ray_intersect_preliminary(ray, coherent=True, reorder=False, active=active)
 
     if dr.hint(integrator.hide_emitters, mode="scalar"):
@@ -125,12 +127,22 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
 
         # ------------------------ emission with MIS ------------------------
         L = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
-                                      prev_pdf, prev_delta), L)
+                                      prev_pdf, prev_delta, prev_q), L)
         active_next = (depth + 1 < max_depth) & si.is_valid()
         bsdf = si.bsdf(ray)
 
         # ------------------------ emitter sampling ------------------------
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        eligible, q = active_em, 1.0
+        if dr.hint(learnt_nee or recording, mode="scalar"):
+            # the cell's side this vertex faces (GuidingField.nee_index)
+            side_n = dr.select(si.wi.z < 0, -si.sh_frame.n, si.sh_frame.n)
+            nee_at = guide.field.nee_index(guide.field.cell(si.p), side_n)
+        if dr.hint(learnt_nee, mode="scalar"):
+            # with the learnt probability q, weighted 1 / q and in the MIS weights as a
+            # density q p_l (GuidingField.nee_probabilities)
+            q = dr.select(eligible, guide.field.nee_probability(nee_at, eligible), 1.0)
+            active_em = eligible & (sampler.next_1d() < q)
         ds, em_weight, wo, active_em = sample_emitter(emitters, si, sampler.next_2d(), active_em)
 
         # --------------------------- BSDF sampling ---------------------------
@@ -144,11 +156,16 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         if dr.hint(guided, mode="scalar"):
             p_b, bs, bsdf_weight, g = mix_surface(
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
-                sampler.next_1d(), u2, guidable & still_guided(gain))
+                sampler.next_1d(), u2, guidable & still_guided(gain), active_em)
         L_pre = L
-        L = dr.select(active_em, dr.fma(beta, emitter_contribution(
-            integrator.mis, si, ds, em_weight, wo, bsdf_val, p_b), L), L)
+        nee = emitter_contribution(integrator.mis, si, ds, em_weight / q, wo, bsdf_val, p_b,
+                                   frac_l=q) if learnt_nee else \
+            emitter_contribution(integrator.mis, si, ds, em_weight, wo, bsdf_val, p_b)
+        L = dr.select(active_em, dr.fma(beta, nee, L), L)
         if dr.hint(recording, mode="scalar"):
+            if guide.lane_weight is not None:
+                guide.field.record_nee(nee_at, dr.select(active_em, dr.mean(beta * nee), 0.0),
+                                       q, eligible, guide.lane_weight)
             # a surface record is the light the sampled direction brought over the
             # throughput before it, f cos Li / p (SURFACE_PRODUCT)
             records = records.add(guide.field, si.p, si.to_world(bs.wo), L, beta,
@@ -163,6 +180,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         prev_si = mi.Interaction3f(si)
         prev_pdf = bs.pdf
         prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        if dr.hint(learnt_nee, mode="scalar"):
+            prev_q = q
 
         # ------------------------- Russian roulette -------------------------
         depth[si.is_valid()] += 1
@@ -178,5 +197,6 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
                                              active=active)
 
     if dr.hint(recording, mode="scalar"):
-        records.flush(guide.field, L, mi.Bool(True))
+        records.flush(guide.field, L, mi.Bool(True),
+                      1.0 if guide.lane_weight is None else guide.lane_weight)
     return dr.select(valid_ray, L, 0.0), valid_ray

@@ -99,15 +99,17 @@ class EmitterSelection:
 
 
 def emission_mis(scene, emitters: EmitterSelection, mis: MIS, si, prev_si,
-                 prev_bsdf_pdf, prev_bsdf_delta):
+                 prev_bsdf_pdf, prev_bsdf_delta, frac_l=1.0):
     """Emission at ``si`` reached by BSDF sampling from ``prev_si``, MIS-weighted.
 
     After a delta lobe (or at the camera, where ``prev_bsdf_delta`` is set) the emitter
-    pdf is 0 and the emission counts in full.
+    pdf is 0 and the emission counts in full. ``frac_l``: as for
+    :func:`emitter_contribution` (the probability that ``prev_si`` sampled an emitter,
+    where it did so with one).
     """
     ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
     p_l = emitters.pdf_direction(prev_si, ds, ~prev_bsdf_delta)
-    w_b = mis.weight(prev_bsdf_pdf, p_l, emitter_technique=False)
+    w_b = mis.weight(prev_bsdf_pdf, p_l * frac_l, emitter_technique=False)
     return w_b * ds.emitter.eval(si, prev_bsdf_pdf > 0)
 
 

@@ -260,15 +260,17 @@ class Records:
             getattr(self, f"w{k}")[here] = w
         return self
 
-    def flush(self, field, L: mi.Spectrum, active) -> None:
+    def flush(self, field, L: mi.Spectrum, active, weight=1.0) -> None:
         """At the end of the paths: every slot adds what came after its vertex, times
         ``n / SLOTS`` where the path had ``n > SLOTS`` vertices (the inverse of the
         probability that the reservoir kept it). Each path with a vertex adds the light
         it gathered beyond its first vertex's direct light (from its second vertex on),
-        and all its light, to :meth:`GuidingField.record_flow`."""
+        all its light, and its square times ``weight`` (its pixel's, as for
+        :meth:`GuidingField.record_nee`) to :meth:`GuidingField.record_flow`."""
         total = mi.Float(dr.mean(L))
         direct = dr.select(self.next >= 2, self.first_L, total)
-        field.record_flow(self.first_cell, total - direct, total, active & (self.next > 0))
+        field.record_flow(self.first_cell, total - direct, total, active & (self.next > 0),
+                          weight)
         scale = dr.maximum(mi.Float(self.next) / SLOTS, 1.0)
         for k in range(SLOTS):
             field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"),
@@ -277,7 +279,7 @@ class Records:
 
 
 def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs, weight,
-                u_select, u_dir, active):
+                u_select, u_dir, active, active_light=True):
     """The guided choice at a surface whose BSDF has no delta or transmissive lobe: with
     probability ``fraction`` (where the cell has a lobe) a direction from the field, else
     the BSDF's own sample ``bs``; one-sample MIS, pdf ``(1 - a) p_bsdf + a g``. Surface
@@ -286,19 +288,20 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     sample, its weight, gain)`` (``gain``: the BSDF's own weight of the sample
     over the mixture's, ``pdf / p_bsdf``, for the roulette): the mixture pdf of the emitter sample's direction is the
     BSDF side of next-event estimation's MIS, and the sample's ``pdf`` that of emission
-    found by the new ray."""
+    found by the new ray; ``active_light``: the lanes that sampled an emitter (elsewhere
+    that pdf is not needed, and its two lookups are skipped)."""
     cell = field.cell(si.p)
     alpha = dr.select(active & field.trained(cell, active), fraction, 0.0)
     guided = alpha > 0
     use = guided & (u_select < alpha)
     side = dr.select(si.wi.z < 0, -1.0, 1.0)
 
-    def folded(local):
+    def folded(local, active=guided):
         """The lobe folded onto the side of ``wi`` (a direction below the surface is
         mirrored above it): density g(w) + g(mirror(w)) there, 0 on the other side."""
         mirrored = mi.Vector3f(local.x, local.y, -local.z)
-        g = field.pdf(cell, si.to_world(local), guided) + \
-            field.pdf(cell, si.to_world(mirrored), guided)
+        g = field.pdf(cell, si.to_world(local), active) + \
+            field.pdf(cell, si.to_world(mirrored), active)
         return dr.select(local.z * side > 0, g, 0.0)
     drawn = si.to_local(field.sample(cell, u_dir, use))
     drawn.z = dr.select(drawn.z * side < 0, -drawn.z, drawn.z)
@@ -313,6 +316,6 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
                                     bs.sampled_type)
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     gain = dr.select(guided & (p_bsdf > 0), pdf / dr.maximum(p_bsdf, 1e-30), 1.0)
-    p_light = dr.select(guided, dr.lerp(p_light, folded(si.to_local(d_light)), alpha),
-                        p_light)
+    p_light = dr.select(guided, dr.lerp(
+        p_light, folded(si.to_local(d_light), guided & active_light), alpha), p_light)
     return p_light, sample, mi.Spectrum(mixed_weight), gain

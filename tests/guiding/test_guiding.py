@@ -20,7 +20,9 @@ from helpers import (assert_mean_equals, assert_same_expectation, cached_estimat
 from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
-from mitsuba_plugins.guiding.field import ACC_STRIDE, GuidingField, HistogramField, media_bounds
+from mitsuba_plugins.guiding.field import (ACC_STRIDE, MIN_RECORDS, NEE_MIN, NEE_SHARE,
+                                           NEE_SIDES, GuidingField, HistogramField,
+                                           media_bounds)
 from mitsuba_plugins.tracking import equiangular
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
@@ -845,3 +847,78 @@ def test_surface_histograms_learn_light_times_cosine():
     measured = band(0.75, 1) / band(0, 0.25)
     assert hist[: n // 2].sum() == 0, "records below the floor"
     assert abs(measured / product - 1) < 0.15, (measured, product, light)
+
+
+# -- learnt next-event estimation (path_rr's guiding_nee) --------------------------------
+def test_emitter_samples_taken_with_any_probability_estimate_the_same_image(monkeypatch):
+    """Every side of every cell takes emitter samples with probability 0.3 (instead of
+    the learnt one): weighted by 1 / 0.3, and in the MIS weights of both techniques as a
+    density 0.3 p_l, the guided Cornell box still estimates the unguided image (the same
+    z-tests and passes as ``test_guided_surfaces_estimate_the_same_image``). Measured to
+    fail: with the emission's MIS weight left at p_l (3 blocks beyond |t| 4.43, image-mean
+    z -2.4) and without the 1 / q (image-mean z -140)."""
+    monkeypatch.setattr(guided_render, "MIN_SHARE", 0.0)
+    monkeypatch.setattr(GuidingField, "nee_probabilities",
+                        lambda self: np.full(self.cells * NEE_SIDES, 0.3))
+    key, make = loaded("cornell_box")
+    a = cached_estimate(f"{key}:nee-q0.3", make, {"type": "path_rr", "max_depth": 8,
+                                                  "guiding": "surfaces"},
+                        passes=16, spp=64, seed=3000)
+    b = cached_estimate(key, make, {"type": "path_rr", "max_depth": 8}, passes=16, spp=64)
+    assert_same_expectation(a, b, "guiding-nee-q0.3-cornell_box")
+
+
+def test_emitter_sampling_probability_follows_what_the_samples_bring(monkeypatch):
+    """After a guided render of the Cornell box (64x64, 256 spp), every side of a cell that
+    faces down (the ceiling, behind its light's plane: its emitter samples find nothing)
+    takes them with ``NEE_MIN``, and the floor's sides (lit directly, most of the image's
+    light) mostly with 1 (measured: median 1; with squared light counted in absolute
+    terms instead of relative to its pixel, the light seen directly made the floor's
+    median 0.17)."""
+    monkeypatch.setattr(guided_render, "MIN_SHARE", 0.0)
+    integrator = mi.load_dict({"type": "path_rr", "max_depth": 8, "guiding": "surfaces"})
+    mi.render(load("cornell_box", res=64), integrator=integrator, spp=256, seed=1)
+    field = integrator.guiding_report.field
+    q = np.array(field.nee).reshape(field.cells, NEE_SIDES)
+    known = field.nee_sums[:, 1].reshape(field.cells, NEE_SIDES) >= MIN_RECORDS
+    down, up = 3, 2                                    # -y and +y (GuidingField.nee_index)
+    assert known[:, down].sum() >= 16 and known[:, up].sum() >= 16
+    assert np.all(q[known[:, down], down] == np.float32(NEE_MIN)), q[known[:, down], down]
+    assert np.median(q[known[:, up], up]) == 1.0, q[known[:, up], up]
+
+
+def test_emitter_sampling_probability_is_the_rule_of_least_variance_times_time():
+    """``GuidingField.nee_probabilities`` on sums set by hand: ``q = sqrt(a n / (rho V))``
+    clamped to [NEE_MIN, 1] (``a`` a side's mean weighted squared contribution, ``n`` the
+    last pass's emitter-sample vertices per path, ``V`` its paths' weighted mean squared
+    light), 1 where a side has too few vertices or the pass found no light; and
+    ``nee_index`` names the side a normal faces."""
+    field = GuidingField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=1)
+    n, V = 4.0, 2.0
+    field.flow = np.array([0.0, 0.0, V * 1000, 1000.0])
+    field.nee_per_path = n
+    A = np.array([0.25 * NEE_SHARE * V / n, 0.0, 100.0, 1e-9, 0.04 * NEE_SHARE * V / n, 1.0])
+    count = np.array([100, 100, 100, 100, 100, MIN_RECORDS - 1], np.float64)
+    field.nee_sums = np.stack([A * count, count], axis=1)
+    q = field.nee_probabilities()
+    assert q == pytest.approx([0.5, NEE_MIN, 1.0, NEE_MIN, 0.2, 1.0])
+    field.flow = np.zeros(4)
+    assert np.all(field.nee_probabilities() == 1.0)
+    normals = mi.Vector3f([1, -1, 0, 0, 0, 0, 0.6], [0, 0, 1, -1, 0, 0, -0.8],
+                          [0, 0, 0, 0, 1, -1, 0])
+    index = GuidingField.nee_index(mi.UInt32(2), normals)
+    assert np.array(index).tolist() == [12, 13, 14, 15, 16, 17, 15]
+
+
+def test_pixel_weights_are_smoothed_inverse_squares():
+    """``guided_render.pixel_weights``: row-major, ``1 / v^2`` of the image smoothed by
+    the box; a black pixel takes its neighbours' smoothed value, a black image the
+    floor's (no division by zero)."""
+    image = np.ones((8, 10, 3))
+    image[:, 5:] = 2.0                                 # the right half twice as bright
+    w = np.array(guided_render.pixel_weights(image)).reshape(8, 10)
+    assert w[:, :3] == pytest.approx(1.0) and w[:, 8:] == pytest.approx(0.25)
+    image[4, 1] = 0.0                                  # one black pixel: 24 / 25 around it
+    w = np.array(guided_render.pixel_weights(image)).reshape(8, 10)
+    assert w[4, 1] == pytest.approx((25 / 24) ** 2)
+    assert np.all(np.isfinite(np.array(guided_render.pixel_weights(np.zeros((4, 4, 3))))))
