@@ -87,6 +87,8 @@ CONFIGS = {
     **{f"path_rr_guided_r16_f{f:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
                                       "guiding_resolution": 16, "guiding_fraction": f}
        for f in (0.2, 0.3, 0.5)},
+    **{f"path_rr_guided_r{r}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                "guiding_resolution": r} for r in (6, 12)},
 }
 
 
