@@ -199,13 +199,13 @@ def pixel_weights(image: np.ndarray) -> mi.Float:
     if lum.ndim == 3:        # RGB (and alpha) or a value (and alpha)
         lum = lum[..., :3 if lum.shape[-1] >= 3 else 1].mean(axis=-1)
     lum = np.where(np.isfinite(lum), lum, 0.0)
+    if not lum.mean() > 0:            # no light seen yet: every pixel alike
+        return mi.Float(np.ones(lum.size, np.float32))
     r = PIXEL_RADIUS
     padded = np.pad(lum, r, mode="edge")
     c = np.cumsum(np.cumsum(np.pad(padded, ((1, 0), (1, 0))), axis=0), axis=1)
     k = 2 * r + 1
     box = (c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]) / (k * k)
-    if not lum.mean() > 0:            # no light seen yet: every pixel alike
-        return mi.Float(np.ones(lum.size, np.float32))
     v = np.maximum(box, PIXEL_FLOOR * lum.mean())
     return mi.Float((1.0 / (v * v)).ravel().astype(np.float32))
 

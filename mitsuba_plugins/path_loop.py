@@ -134,7 +134,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         # ------------------------ emitter sampling ------------------------
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         eligible, q = active_em, 1.0
-        if dr.hint(learnt_nee or recording, mode="scalar"):
+        record_nee = recording and guide.lane_weight is not None
+        if dr.hint(learnt_nee or record_nee, mode="scalar"):
             # the cell's side this vertex faces (GuidingField.nee_index)
             side_n = dr.select(si.wi.z < 0, -si.sh_frame.n, si.sh_frame.n)
             nee_at = guide.field.nee_index(guide.field.cell(si.p), side_n)
@@ -158,14 +159,14 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
                 sampler.next_1d(), u2, guidable & still_guided(gain), active_em)
         L_pre = L
-        nee = emitter_contribution(integrator.mis, si, ds, em_weight / q, wo, bsdf_val, p_b,
-                                   frac_l=q) if learnt_nee else \
-            emitter_contribution(integrator.mis, si, ds, em_weight, wo, bsdf_val, p_b)
+        nee = emitter_contribution(integrator.mis, si, ds,
+                                   em_weight / q if learnt_nee else em_weight, wo, bsdf_val,
+                                   p_b, frac_l=q)
         L = dr.select(active_em, dr.fma(beta, nee, L), L)
+        if dr.hint(record_nee, mode="scalar"):
+            guide.field.record_nee(nee_at, dr.select(active_em, dr.mean(beta * nee), 0.0),
+                                   q, eligible, guide.lane_weight)
         if dr.hint(recording, mode="scalar"):
-            if guide.lane_weight is not None:
-                guide.field.record_nee(nee_at, dr.select(active_em, dr.mean(beta * nee), 0.0),
-                                       q, eligible, guide.lane_weight)
             # a surface record is the light the sampled direction brought over the
             # throughput before it, f cos Li / p (SURFACE_PRODUCT)
             records = records.add(guide.field, si.p, si.to_world(bs.wo), L, beta,
