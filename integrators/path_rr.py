@@ -75,10 +75,11 @@ class PathRR(PathIntegrator):
          sphere, in [0, 64]; 0: one von Mises-Fisher lobe per cell. (Default: 16)
      * - guiding_nee
        - |bool|
-       - With ``guiding``: each cell of the field also learns how much its emitter samples
-         bring against the light its sampled directions bring, and a vertex there samples
-         an emitter with the probability that minimises variance times time, in [0.05, 1]
-         (weighted by its inverse, and in the MIS weights; docs/method.md section 13).
+       - With ``guiding``: each cell of the field also learns, per side a surface faces,
+         the squared light its emitter samples bring (relative to their pixels) against
+         the paths' whole squared light, and a vertex there samples an emitter with the
+         probability that minimises variance times time, in [0.05, 1] (weighted by its
+         inverse, and in the MIS weights; docs/method.md section 13).
          (Default: true)
      * - hide_emitters
        - |bool|
