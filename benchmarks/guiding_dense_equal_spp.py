@@ -5,8 +5,8 @@ training paths that ``guided_render.MIN_TRAINING_PATHS`` asks for and is guided.
 
 Per scene: a 4096-spp reference of ``dense.REFERENCE``; 6 renders of each configuration,
 alternating; time = the median of the last 5 (the first compiles), relMSE = the mean
-over the 6 of ``mean((img - ref)^2 / (mean_c(ref)^2 + 0.01))`` (the reference's own
-noise is left in, which pulls both ratios toward 1 a little); medium vertices per camera
+over the 6 of ``stats.rel_mse`` (the reference's own noise is left in, which pulls both
+ratios toward 1 a little); medium vertices per camera
 ray from a 4-spp plain render (``instrument.counting``); the guided render's first-pass
 share (``GuidingReport.share``) and whether it went on unguided.
 
@@ -29,6 +29,7 @@ import numpy as np
 
 from mitsuba_plugins import output
 from mitsuba_plugins.instrument import counting
+from mitsuba_plugins.tools import stats
 
 ROOT = Path(__file__).resolve().parents[1]
 RES, REF_SPP, RUNS = 32, 4096, 6
@@ -42,7 +43,6 @@ def measure(case, spp: int, tmp: Path) -> dict:
         vpp = n["medium_vertices"] / (RES * RES * 4)
     ref = np.array(mi.render(sc, integrator=mi.load_dict(dict(dh.dense.REFERENCE)),
                              spp=REF_SPP, seed=99))[..., :3]
-    norm = ref.mean(-1, keepdims=True) ** 2 + 1e-2
     row = {}
     guided = mi.load_dict({"type": "volpath_delta", "guiding": "volumes"})
     for k in range(RUNS):
@@ -52,7 +52,7 @@ def measure(case, spp: int, tmp: Path) -> dict:
             t = time.perf_counter() - t0
             r = row.setdefault(name, {"t": [], "e": []})
             r["t"].append(t)
-            r["e"].append(float(np.mean((im - ref) ** 2 / norm)))
+            r["e"].append(stats.rel_mse(im, ref))
     tp, tg = np.median(row["plain"]["t"][1:]), np.median(row["guided"]["t"][1:])
     ep, eg = np.mean(row["plain"]["e"]), np.mean(row["guided"]["e"])
     rep = guided.guiding_report
