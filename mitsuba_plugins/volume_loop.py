@@ -237,9 +237,16 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         elif dr.hint(gd, mode="scalar"):
-            # the segment's end on every lane (its guided point is drawn over all of
-            # it), the surface interaction only where the flight will reach it
-            pi = scene.ray_intersect_preliminary(ray, False, active)
+            # the segment's end on every lane whose medium the light grid shapes (its
+            # guided point is drawn over all of it), the surface interaction only where
+            # the flight will reach it; in a dense homogeneous medium (LightGrid.takes)
+            # the intersection only up to the flight's collision, as unguided: the dense
+            # family's cube pairs (a near-empty box beside a dense one) searched whole
+            # segments at every one of their ~12 vertices per camera ray
+            far = dr.select(guide.light.takes(mi.Bool(True), ctx.drawn[2]), ray.maxt,
+                            dr.minimum(ray.maxt, reach))
+            pi = scene.ray_intersect_preliminary(
+                mi.Ray3f(ray.o, ray.d, far, ray.time, ray.wavelengths), False, active)
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active & (pi.t <= reach))
             t_end = dr.select(active, pi.t, dr.inf)
             end_bsdf = pi.shape.bsdf()
