@@ -234,6 +234,9 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
         # equiangular sampling needs the segment's end: no flight drawn before; guided
         # points need it too, and take the coefficients read with the flight's number
         reach = None if eq else strategy.reach(ctx, medium, ray, active)
+        # the lanes whose medium the light grid shapes (LightGrid.takes), from the
+        # extinction the flight's number was drawn with
+        shaped = guide.light.takes(mi.Bool(True), ctx.drawn[2]) if gd else None
         if dr.hint(reach is None, mode="scalar"):
             si = scene.ray_intersect(ray, mi.RayFlags.All, False, active)
         elif dr.hint(gd, mode="scalar"):
@@ -243,8 +246,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             # the intersection only up to the flight's collision, as unguided: the dense
             # family's cube pairs (a near-empty box beside a dense one) searched whole
             # segments at every one of their ~12 vertices per camera ray
-            far = dr.select(guide.light.takes(mi.Bool(True), ctx.drawn[2]), ray.maxt,
-                            dr.minimum(ray.maxt, reach))
+            far = dr.select(shaped, ray.maxt, dr.minimum(ray.maxt, reach))
             pi = scene.ray_intersect_preliminary(
                 mi.Ray3f(ray.o, ray.d, far, ray.time, ray.wavelengths), False, active)
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active & (pi.t <= reach))
@@ -285,7 +287,7 @@ def trace_volumes(integrator, strategy, scene: mi.Scene, sampler: mi.Sampler, ra
             # once-scattered light is (guiding.distance), not at its free-flight vertex
             gd_lanes = active & (medium != None) & medium.is_homogeneous() \
                 & medium.use_emitter_sampling() & (depth + 1 < max_depth)  # noqa: E711
-            gd_lanes &= guide.light.takes(mi.Bool(True), ctx.drawn[2])
+            gd_lanes &= shaped
             gd_point = distance.plan(guide.light, ray, ctx.drawn[1:], t_end, smooth,
                                      gd_lanes, sampler.next_1d(gd_lanes))
             gd_beta = beta * gd_point.factor
