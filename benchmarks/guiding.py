@@ -70,6 +70,8 @@ CONFIGS = {
     # surfaces (path_rr), against Mitsuba's path
     "path_rr": {"type": "path_rr", "max_depth": 12},
     "path_rr_guided": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces"},
+    **{f"path_rr_guided_portal{a:g}": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
+                                       "guiding_portal": a} for a in (0, 0.05, 0.1, 0.2, 0.3)},
     "path_rr_guided_nonee": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",
                              "guiding_nee": False},
     "path_rr_guided_vmf": {"type": "path_rr", "max_depth": 12, "guiding": "surfaces",

@@ -11,6 +11,8 @@ from mitsuba_plugins.validity import refuse_gradients
 
 #: default guiding_fraction, chosen on the tuning room (docs/benchmarks.md)
 FRACTION = 0.2
+#: default guiding_portal, chosen on the tuning room (guiding.field.PORTAL_ROWS)
+PORTAL = 0.1
 
 VARIANT = mi.variant()
 
@@ -81,6 +83,13 @@ class PathRR(PathIntegrator):
          probability that minimises variance times time, in [0.05, 1] (weighted by its
          inverse, and in the MIS weights; docs/method.md section 13).
          (Default: true)
+     * - guiding_portal
+       - |float|
+       - With ``guiding``: the share of a guided vertex's directions drawn toward a
+         point of its cell's learnt portal, in [0, 0.5]: an axis-aligned rectangle that
+         most of the cell's recorded light crossed (a door, a hole), found from the
+         last training pass's records; its density enters the mixture's pdf (docs/method.md
+         section 13). 0: none. (Default: 0.1)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)
@@ -105,7 +114,7 @@ class PathRR(PathIntegrator):
     NAME = "path_rr"
     PARAMETERS = ("rr_rule", "rr_survival", "rr_min_survival", "emitter_selection",
                   "guiding", "guiding_fraction", "guiding_training", "guiding_resolution",
-                  "guiding_bins", "guiding_nee")
+                  "guiding_bins", "guiding_nee", "guiding_portal")
 
     def configure(self, p):
         self.rr = RussianRoulette(
@@ -119,6 +128,7 @@ class PathRR(PathIntegrator):
         self.guiding_fraction = p.float("guiding_fraction", FRACTION, lo=0.0, hi=0.9)
         self.guiding_bins = p.int("guiding_bins", BINS, lo=0, hi=64)
         self.guiding_nee = p.bool("guiding_nee", True)
+        self.guiding_portal = p.float("guiding_portal", PORTAL, lo=0.0, hi=0.5)
         check_memory(self.guiding_resolution, self.guiding_bins)
 
     def to_string(self):

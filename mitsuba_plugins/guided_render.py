@@ -60,8 +60,12 @@ class GuidedPass:
 
     def __init__(self, field, sampling: bool, recording: bool, candidates: int = 1,
                  fraction: float = 0.0, roulette: float = 0.0, light=None,
-                 symmetric: bool = False, media=None, lobe: int = 0, nee: bool = False):
+                 symmetric: bool = False, media=None, lobe: int = 0, nee: bool = False,
+                 portal: float = 0.0):
         self.field, self.sampling, self.recording = field, sampling, recording
+        # share of a guided surface vertex's choice drawn toward its cell's learnt
+        # portal (path_rr's guiding_portal, HistogramField.portals)
+        self.portal = portal
         # sampling passes take emitter samples with the field's learnt probability
         # (path_rr's guiding_nee, GuidingField.nee_probabilities)
         self.nee = nee
@@ -262,7 +266,11 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                        fraction=getattr(integrator, "guiding_fraction", 0.0),
                        roulette=getattr(integrator, "guiding_roulette", 0.0),
                        light=light, symmetric=symmetric, media=media_needs,
-                       nee=getattr(integrator, "guiding_nee", False))
+                       nee=getattr(integrator, "guiding_nee", False),
+                       portal=getattr(integrator, "guiding_portal", 0.0))
+        if guide is not None and guide.portal > 0 and k == len(plan) - 2 and \
+                hasattr(field, "keep_portal_records"):
+            field.keep_portal_records()     # the last training pass finds the portals
         if guide is not None and guide.nee and seen is not None:
             guide.pixel_weight = pixel_weights(seen / seen_spp)
         pass_seed = seed if k == 0 else _pass_seed(seed, k)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_plugins.guiding.sampling import Records, mix_surface, still_guided
+from mitsuba_plugins.guiding.sampling import Records, SurfaceRecords, mix_surface, still_guided
 from mitsuba_plugins.loop_state import traced_once, widened
 from mitsuba_plugins.mis import MIS
 from mitsuba_plugins.params import Params, SAMPLING_INTEGRATOR_BASE, depth_limit
@@ -109,7 +109,9 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     active = mi.Bool(active)                         # lanes still tracing
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
-    records = Records() if recording else None       # the field's training records
+    # the records of the last training pass also find the field's portals
+    portals = recording and getattr(guide.field, "portal_buffer", None) is not None
+    records = (SurfaceRecords() if portals else Records()) if recording else None
     gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)
     learnt_nee = guided and guide.nee                # emitter samples with learnt probability
     prev_q = mi.Float(1.0) if learnt_nee else 1.0    # ... at the previous vertex
@@ -124,6 +126,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     while dr.hint(active, label="path_rr"):
         # ------------------------------ intersect ------------------------------
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        if dr.hint(portals, mode="scalar"):
+            records.hit(dr.select(si.is_valid(), si.t, dr.inf), active)
 
         # ------------------------ emission with MIS ------------------------
         L = dr.fma(beta, emission_mis(scene, emitters, integrator.mis, si, prev_si,
@@ -157,7 +161,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         if dr.hint(guided, mode="scalar"):
             p_b, bs, bsdf_weight, g = mix_surface(
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
-                sampler.next_1d(), u2, guidable & still_guided(gain), active_em)
+                sampler.next_1d(), u2, guidable & still_guided(gain), active_em,
+                guide.portal)
         L_pre = L
         nee = emitter_contribution(integrator.mis, si, ds,
                                    em_weight / q if learnt_nee else em_weight, wo, bsdf_val,

@@ -258,7 +258,14 @@ class Records:
             getattr(self, f"valid{k}")[here] = True
             getattr(self, f"L{k}")[here] = L
             getattr(self, f"w{k}")[here] = w
+            self._keep(k, here, p)
         return self
+
+    def _keep(self, k: int, here: mi.Bool, p: mi.Point3f) -> None:
+        """What a subclass keeps more of a vertex in slot ``k``."""
+
+    def _flushed(self, field, k: int, value: mi.Float, valid: mi.Bool) -> None:
+        """What a subclass records more of slot ``k`` (its ``value``, :meth:`flush`)."""
 
     def flush(self, field, L: mi.Spectrum, active, weight=1.0) -> None:
         """At the end of the paths: every slot adds what came after its vertex, times
@@ -273,13 +280,74 @@ class Records:
                           weight)
         scale = dr.maximum(mi.Float(self.next) / SLOTS, 1.0)
         for k in range(SLOTS):
-            field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"),
-                         scale * self._value(L, getattr(self, f"L{k}"), getattr(self, f"w{k}")),
-                         active & getattr(self, f"valid{k}"), scale)
+            value = scale * self._value(L, getattr(self, f"L{k}"), getattr(self, f"w{k}"))
+            valid = active & getattr(self, f"valid{k}")
+            field.record(getattr(self, f"cell{k}"), getattr(self, f"d{k}"), value, valid,
+                         scale)
+            self._flushed(field, k, value, valid)
+        self._done(field)
+
+    def _done(self, field) -> None:
+        """What a subclass does once every slot is flushed."""
+
+
+def _surface_fields():
+    out = _fields()
+    out.update({f"p{k}": mi.Point3f for k in range(SLOTS)})
+    out.update({f"t{k}": mi.Float for k in range(SLOTS)})
+    out["last"] = mi.UInt32
+    return out
+
+
+class SurfaceRecords(Records):
+    """:class:`Records` of surface vertices that also keep each vertex's position and the
+    distance its sampled ray went to the next vertex (:meth:`hit`), for the field's
+    portals: each path hands the slot that brought it the most light to
+    :meth:`HistogramField.record_portal`."""
+    DRJIT_STRUCT = _surface_fields()
+
+    def __init__(self):
+        super().__init__()
+        for k in range(SLOTS):
+            setattr(self, f"p{k}", mi.Point3f(0.0))
+            setattr(self, f"t{k}", mi.Float(dr.inf))
+        self.last = mi.UInt32(SLOTS)
+
+    def hit(self, t: mi.Float, active) -> None:
+        """The path's ray since its last vertex went ``t`` (inf: it left the scene): that
+        vertex's slot, if it kept one, learns it."""
+        for k in range(SLOTS):
+            getattr(self, f"t{k}")[active & (self.last == k)] = t
+        self.last[active] = SLOTS
+
+    def _keep(self, k, here, p):
+        getattr(self, f"p{k}")[here] = p
+        getattr(self, f"t{k}")[here] = dr.inf
+        self.last[here] = k
+
+    def _flushed(self, field, k, value, valid):
+        # the slot that brought the most light (one record per path: one scatter)
+        v = dr.select(valid & dr.isfinite(value), value, 0.0)
+        if k == 0:
+            self._best, self._best_value = mi.UInt32(0), v
+        else:
+            better = v > self._best_value
+            self._best = dr.select(better, k, self._best)
+            self._best_value = dr.select(better, v, self._best_value)
+
+    def _done(self, field):
+        def pick(name):
+            out = getattr(self, f"{name}0")
+            for k in range(1, SLOTS):
+                out = dr.select(self._best == k, getattr(self, f"{name}{k}"), out)
+            return out
+        lane = dr.arange(mi.UInt32, dr.width(self._best_value))
+        field.record_portal(lane, pick("cell"), pick("p"), pick("d"), pick("t"),
+                            self._best_value, self._best_value > 0)
 
 
 def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs, weight,
-                u_select, u_dir, active, active_light=True):
+                u_select, u_dir, active, active_light=True, portal: float = 0.0):
     """The guided choice at a surface whose BSDF has no delta or transmissive lobe: with
     probability ``fraction`` (where the cell has a lobe) a direction from the field, else
     the BSDF's own sample ``bs``; one-sample MIS, pdf ``(1 - a) p_bsdf + a g``. Surface
@@ -289,11 +357,26 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     over the mixture's, ``pdf / p_bsdf``, for the roulette): the mixture pdf of the emitter sample's direction is the
     BSDF side of next-event estimation's MIS, and the sample's ``pdf`` that of emission
     found by the new ray; ``active_light``: the lanes that sampled an emitter (elsewhere
-    that pdf is not needed, and its two lookups are skipped)."""
+    that pdf is not needed, and its two lookups are skipped). ``portal`` (``path_rr``'s
+    ``guiding_portal``): where the cell has a learnt portal, first with this probability
+    the direction toward a point uniform on it (:meth:`HistogramField.portal_sample`),
+    and the pdf ``b p_portal + (1 - b) ((1 - a) p_bsdf + a g)``."""
     cell = field.cell(si.p)
     alpha = dr.select(active & field.trained(cell, active), fraction, 0.0)
     guided = alpha > 0
+    opening = portal > 0 and getattr(field, "has_portals", False)
+    if opening:
+        # first, with probability ``portal``, toward a point of the cell's learnt portal
+        # (HistogramField.portals); the rest of u_select chooses as below
+        centre, half, inv_area = field.portal(cell, guided)
+        beta = dr.select(guided & (inv_area > 0), portal, 0.0)
+        use_portal = u_select < beta
+        u_select = dr.select(use_portal, u_select, (u_select - beta) / (1.0 - beta))
+        aimed = field.portal_sample(centre, half, u_dir) - si.p
+        use_portal &= dr.squared_norm(aimed) > 1e-12       # (a point at the vertex: a null set)
     use = guided & (u_select < alpha)
+    if opening:
+        use &= ~use_portal
     side = dr.select(si.wi.z < 0, -1.0, 1.0)
 
     def folded(local, active=guided):
@@ -306,8 +389,13 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     drawn = si.to_local(field.sample(cell, u_dir, use))
     drawn.z = dr.select(drawn.z * side < 0, -drawn.z, drawn.z)
     wo = dr.select(use, drawn, bs.wo)
+    if opening:
+        wo = dr.select(use_portal, si.to_local(dr.normalize(aimed)), wo)
+        use |= use_portal
     f, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
     pdf = dr.lerp(p_bsdf, folded(wo), alpha)
+    if opening:
+        pdf = dr.lerp(pdf, field.portal_pdf(centre, half, inv_area, si.p, si.to_world(wo)), beta)
     sample = mi.BSDFSample3f(bs)
     sample.wo = wo
     sample.pdf = dr.select(guided, pdf, bs.pdf)
@@ -316,6 +404,8 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
                                     bs.sampled_type)
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     gain = dr.select(guided & (p_bsdf > 0), pdf / dr.maximum(p_bsdf, 1e-30), 1.0)
-    p_light = dr.select(guided, dr.lerp(
-        p_light, folded(si.to_local(d_light), guided & active_light), alpha), p_light)
+    p_mixed = dr.lerp(p_light, folded(si.to_local(d_light), guided & active_light), alpha)
+    if opening:
+        p_mixed = dr.lerp(p_mixed, field.portal_pdf(centre, half, inv_area, si.p, d_light), beta)
+    p_light = dr.select(guided, p_mixed, p_light)
     return p_light, sample, mi.Spectrum(mixed_weight), gain

@@ -142,6 +142,106 @@ def test_histogram_pdf_is_the_density_of_its_samples(bins):
     _assert_density_of_samples(field, cell=3, mass=_histogram_mass)
 
 
+def _rectangle_solid_angle(x, centre, half) -> float:
+    """The solid angle of an axis-aligned rectangle (one half-extent 0) seen from ``x``:
+    two triangles by Van Oosterom and Strackee's formula."""
+    axes = [k for k in range(3) if half[k] > 0]
+    corners = []
+    for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        c = np.array(centre, np.float64)
+        c[axes[0]] += su * half[axes[0]]
+        c[axes[1]] += sv * half[axes[1]]
+        corners.append(c - np.array(x, np.float64))
+
+    def triangle(a, b, c):
+        la, lb, lc = (np.linalg.norm(v) for v in (a, b, c))
+        num = abs(np.dot(a, np.cross(b, c)))
+        den = la * lb * lc + np.dot(a, b) * lc + np.dot(a, c) * lb + np.dot(b, c) * la
+        return 2.0 * np.arctan2(num, den)
+    return triangle(corners[0], corners[1], corners[2]) + \
+        triangle(corners[0], corners[2], corners[3])
+
+
+@pytest.mark.parametrize("normal", [0, 1, 2])
+def test_portal_pdf_is_the_density_of_its_samples(normal):
+    """Directions toward points uniform on a portal (``HistogramField.portal_sample``)
+    against its density (``portal_pdf``): ``E[1 / pdf]`` over 2^20 samples is the
+    rectangle's solid angle (exact: Van Oosterom-Strackee) within 4 standard errors of
+    the mean, which holds only if ``pdf`` is the samples' density on their support; and
+    the pdf integrates to 1 over the sphere (a 1024 x 2048 midpoint grid, 1%: the
+    rectangle's edges cut cells)."""
+    half = [0.5, 0.3, 0.7]
+    half[normal] = 0.0
+    centre, x = [0.4, -0.2, 0.6], [-0.1, 0.3, -0.3]
+    inv_area = 1.0 / (4.0 * np.prod([h for h in half if h > 0]))
+    c, h = mi.Point3f(*centre), mi.Vector3f(*half)
+    rng = np.random.default_rng(normal)
+    n = 1 << 20
+    u = mi.Point2f(*(mi.Float(rng.random(n).astype(np.float32)) for _ in range(2)))
+    y = HistogramField.portal_sample(c, h, u)
+    d = dr.normalize(y - mi.Point3f(*x))
+    p = np.array(HistogramField.portal_pdf(c, h, mi.Float(inv_area), mi.Point3f(*x), d),
+                 np.float64)
+    assert (p > 0).all()
+    omega = _rectangle_solid_angle(x, centre, half)
+    se = np.std(1.0 / p) / np.sqrt(n)
+    assert abs(np.mean(1.0 / p) - omega) < 4 * se + 1e-6, (np.mean(1.0 / p), omega, se)
+    Z, _, dirs = _sphere_midpoints(1024, 2048)
+    dens = np.array(HistogramField.portal_pdf(c, h, mi.Float(inv_area), mi.Point3f(*x), dirs))
+    assert dens.sum() * 4 * np.pi / Z.size == pytest.approx(1.0, rel=0.01)
+
+
+def test_portals_find_a_door():
+    """Records of a cell whose light all came through a door (a 0.2 x 0.4 rectangle in the
+    plane z = 0.8; rays from points uniform in the cell toward points uniform on it, their
+    next vertex beyond it): ``HistogramField.portals`` puts the cell's portal in a plane of
+    normal z within one candidate plane's spacing of 0.8, centred on the door within 0.05,
+    covering it; a cell without records has none."""
+    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=4)
+    rng = np.random.default_rng(3)
+    n = 4000
+    origin = rng.uniform([0.27, 0.27, 0.02], [0.48, 0.48, 0.23], (n, 3))
+    target = np.column_stack([rng.uniform(0.4, 0.6, n), rng.uniform(0.2, 0.6, n),
+                              np.full(n, 0.8)])
+    d = target - origin
+    length = np.linalg.norm(d, axis=1)
+    cell = np.array(field.cell(mi.Point3f(*origin.T.astype(np.float32))))
+    assert (cell == cell[0]).all()
+    field.portal_source = np.column_stack([cell, origin, d / length[:, None], length + 0.1,
+                                           rng.uniform(0.5, 1.5, n)])
+    table = field.portals()
+    centre, half = table[cell[0], :3], table[cell[0], 3:]
+    assert half[2] == 0 and half[0] > 0 and half[1] > 0
+    assert abs(centre[2] - 0.8) <= 1.0 / sampling_planes()
+    assert np.allclose(centre[:2], [0.5, 0.4], atol=0.05), centre
+    assert half[0] >= 0.1 and half[1] >= 0.2, half
+    others = np.delete(np.arange(field.cells), cell[0])
+    assert (table[others] == 0).all()
+
+
+def sampling_planes() -> int:
+    from mitsuba_plugins.guiding.field import PORTAL_PLANES
+    return PORTAL_PLANES
+
+
+def test_guided_surfaces_with_portals_estimate_the_same_image():
+    """``path_rr`` guided with portals (the default ``guiding_portal``) against plain
+    ``path_rr`` in the guiding benchmark's door room (a room lit only through a door;
+    32x32, 16 passes of 128 spp each, disjoint seeds): docs/validation.md's three checks.
+    A render of the same settings must have found portals, or the test would not test
+    them."""
+    from benchmarks.guiding import door_room
+    integrator = {"type": "path_rr", "max_depth": 8, "guiding": "surfaces"}
+    probe = mi.load_dict(integrator)
+    mi.render(door_room(32), integrator=probe, spp=128, seed=1)
+    assert probe.guiding_report.field.has_portals
+    a = cached_estimate("door_room:32", lambda: door_room(32), integrator, passes=16,
+                        spp=128, seed=3000)
+    b = cached_estimate("door_room:32", lambda: door_room(32),
+                        {"type": "path_rr", "max_depth": 8}, passes=16, spp=128)
+    assert_same_expectation(a, b, "guiding-portals-door_room")
+
+
 @pytest.mark.parametrize("bins", [5, 16])
 def test_guide_table_finds_the_bin_a_binary_search_finds(bins):
     """For every u at and beside (one float32 step each way) each bin's cumulative
