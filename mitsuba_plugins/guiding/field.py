@@ -448,7 +448,6 @@ class HistogramField(GuidingField):
         self.hist = None
         self.portal_source = None    # the records the portals were found from (host)
         self.portal_buffer = None    # the device buffer of the pass that keeps them
-        self.scale = float(np.max(np.array(bbox.max) - np.array(bbox.min)))
         super().__init__(bbox, resolution)
         self.hist = np.zeros((self.cells, self.size), np.float64)
 

@@ -21,8 +21,8 @@ from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import (ACC_STRIDE, MIN_RECORDS, NEE_MIN, NEE_SHARE,
-                                           NEE_SIDES, GuidingField, HistogramField,
-                                           media_bounds)
+                                           NEE_SIDES, PORTAL_PLANES, GuidingField,
+                                           HistogramField, media_bounds)
 from mitsuba_plugins.tracking import equiangular
 
 GUIDED = {"type": "volpath_delta", "guiding": "volumes"}
@@ -212,16 +212,11 @@ def test_portals_find_a_door():
     table = field.portals()
     centre, half = table[cell[0], :3], table[cell[0], 3:]
     assert half[2] == 0 and half[0] > 0 and half[1] > 0
-    assert abs(centre[2] - 0.8) <= 1.0 / sampling_planes()
+    assert abs(centre[2] - 0.8) <= 1.0 / PORTAL_PLANES
     assert np.allclose(centre[:2], [0.5, 0.4], atol=0.05), centre
     assert half[0] >= 0.1 and half[1] >= 0.2, half
     others = np.delete(np.arange(field.cells), cell[0])
     assert (table[others] == 0).all()
-
-
-def sampling_planes() -> int:
-    from mitsuba_plugins.guiding.field import PORTAL_PLANES
-    return PORTAL_PLANES
 
 
 def test_guided_surfaces_with_portals_estimate_the_same_image():
