@@ -29,8 +29,8 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_plugins.guiding import distance
-from mitsuba_plugins.guiding.field import (GuidingField, HistogramField, media_bounds,
-                                           scene_bounds)
+from mitsuba_plugins.guiding.field import (GuidingField, HistogramField, geometry_planes,
+                                           media_bounds, scene_bounds)
 from mitsuba_plugins.tracking.scene_media import SceneMedia, scene_media
 
 _common = mi.ad.integrators.common
@@ -242,6 +242,8 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
     bins = getattr(integrator, "guiding_bins", 0)
     field = HistogramField(bounds, integrator.guiding_resolution, bins) if bins else \
         GuidingField(bounds, integrator.guiding_resolution)
+    if bins and getattr(integrator, "guiding_portal", 0.0) > 0:
+        field.geometry_planes = geometry_planes(scene)      # the portals' candidates
     media = scene_media(scene)
     g = distance.common_hg(media) or None
     light = distance.LightGrid(bounds, lamps=distance.lamps(scene, bounds, outside=g is not None),

@@ -392,29 +392,90 @@ def scene_bounds(scene: mi.Scene):
     return box if box.valid() else scene.bbox()
 
 
+def rectangle_solid_angle(u0, u1, v0, v1, h) -> np.ndarray:
+    """The solid angle of the rectangle ``[u0, u1] x [v0, v1]`` in a plane at distance
+    ``h > 0`` from a point whose foot on the plane is the origin (the sum over its corners
+    of ``+- atan(u v / (h sqrt(u^2 + v^2 + h^2)))``; 0 where ``h`` is 0)."""
+    h = np.asarray(h, np.float64)
+    hs = np.where(h > 0, h, 1.0)
+
+    def corner(u, v):
+        return np.arctan(u * v / (hs * np.sqrt(u * u + v * v + hs * hs)))
+    omega = corner(u1, v1) - corner(u0, v1) - corner(u1, v0) + corner(u0, v0)
+    return np.where(h > 0, np.abs(omega), 0.0)
+
+
+def geometry_planes(scene: mi.Scene, most: int = 0) -> list:
+    """Per axis, the coordinates of the scene's own planes normal to it (a wall, a floor:
+    the faces of its meshes whose normal lies along the axis, merged where they share a
+    coordinate), the ``most`` largest by area (default :data:`PORTAL_GEOMETRY_PLANES`):
+    an opening in a wall lies in the wall's plane, where the rays through it have their
+    waist (:meth:`HistogramField.portals`). Shapes other than meshes add none."""
+    most = most or PORTAL_GEOMETRY_PLANES
+    coords, areas = [[], [], []], [[], [], []]
+    for shape in scene.shapes():
+        if not shape.is_mesh() or shape.face_count() == 0:
+            continue
+        v = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+        f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        for axis in range(3):
+            along = (area > 0) & (np.abs(cross[:, axis]) >= (1.0 - 1e-6) * 2.0 * area)
+            coords[axis].append(v[f[along]][:, :, axis].mean(axis=1))
+            areas[axis].append(area[along])
+    out = []
+    for axis in range(3):
+        c = np.concatenate(coords[axis]) if coords[axis] else np.zeros(0)
+        a = np.concatenate(areas[axis]) if areas[axis] else np.zeros(0)
+        if c.size == 0:
+            out.append(np.zeros(0))
+            continue
+        keys, inverse = np.unique(np.round(c, 5), return_inverse=True)
+        total = np.bincount(inverse, weights=a)
+        out.append(np.sort(keys[np.argsort(-total, kind="stable")[:most]]))
+    return out
+
+
 #: default bins per axis of :class:`HistogramField`'s directional histograms (path_rr's
 #: ``guiding_bins``)
 BINS = 16
 #: portals (:meth:`HistogramField.portals`): records kept per cell by the last training
 #: pass (one per path, the slot that brought it the most light; at most PORTAL_BUFFER
-#: in all), candidate planes per axis across the field's box, and a portal's half-width
-#: in standard deviations of the crossings (a uniform interval of half-width sqrt(3)
-#: has a standard deviation of 1). Tuning room (`benchmarks.guiding --surfaces --set
-#: tuning --spp 256 --runs 6`, efficiency against `path`, relMSE per sample): 64 rows,
-#: 1.5 sqrt(3) wide: 1.69x (0.38) against 1.44x (0.49) without portals; 256 rows 1.79x
-#: (0.37) against 1.71x (0.46); 256 rows, sqrt(3) wide: 1.67x (0.39) against 1.55x (0.48)
+#: in all), candidate planes per axis across the field's box where the scene has none of
+#: its own, and the half-width, in standard deviations of a plane's crossings, of the
+#: rectangle that scores the plane (a uniform interval of half-width sqrt(3) has a
+#: standard deviation of 1). Tuning room (`benchmarks.guiding --surfaces --set tuning
+#: --spp 256 --runs 6`, efficiency against `path`, relMSE per sample; one portal per
+#: cell, from planes across the box, the rectangle the scoring one): 64 rows, 1.5 sqrt(3)
+#: wide: 1.69x (0.38) against 1.44x (0.49) without portals; 256 rows 1.79x (0.37) against
+#: 1.71x (0.46); 256 rows, sqrt(3) wide: 1.67x (0.39) against 1.55x (0.48)
 PORTAL_ROWS = 256
 PORTAL_BUFFER = 1 << 18
 PORTAL_PLANES = 32
 PORTAL_WIDTH = 1.5 * math.sqrt(3.0)
-#: ... the least share of a cell's recorded light that must cross a portal, and the
-#: largest solid angle (sr, from the cell's centre) a portal may cover
+#: ... the least share of a pool's recorded light that must cross a portal, and the
+#: largest solid angle (sr, from the pool's centre) its scoring rectangle may cover
 PORTAL_SHARE = 0.3
 PORTAL_SOLID_ANGLE = 1.0
 #: ... the least effective number of records (``(sum w)^2 / sum w^2``) behind a portal,
 #: and its least half-width, a share of a cell's smallest side
 PORTAL_MIN_RECORDS = 16
 PORTAL_MIN_WIDTH = 0.25
+#: ... the light-weighted quantiles of a chosen plane's crossings that bound its portal
+#: (each axis: from PORTAL_TRIM to 1 - PORTAL_TRIM, widened by 1 / (1 - 2 PORTAL_TRIM), so
+#: that uniform crossings give their own interval), and the share of a ray's length before
+#: its next vertex within which a plane does not count as crossed
+PORTAL_TRIM = 0.02
+PORTAL_END = 1e-3
+#: ... at most this many of the scene's own planes per axis are the candidates
+#: (:func:`geometry_planes`: the faces whose normal lies along the axis, by area; an
+#: opening in a wall lies in the wall's plane)
+PORTAL_GEOMETRY_PLANES = 16
+#: ... and the cells per axis whose records find one portal together (a door is the
+#: waist of the bundle of a room's rays, not of one cell's; pooled, the records of a few
+#: cells also weigh the door's share of the light with less noise)
+PORTAL_POOL = 2
 #: floats per kept record: cell, position, direction, distance to the next vertex, value
 #: (and spares: one packet scatter of a power of two)
 PORTAL_STRIDE = 16
@@ -448,6 +509,8 @@ class HistogramField(GuidingField):
         self.hist = None
         self.portal_source = None    # the records the portals were found from (host)
         self.portal_buffer = None    # the device buffer of the pass that keeps them
+        # per axis, the scene's own planes among the portals' candidates (geometry_planes)
+        self.geometry_planes = [np.zeros(0)] * 3
         super().__init__(bbox, resolution)
         self.hist = np.zeros((self.cells, self.size), np.float64)
 
@@ -512,16 +575,21 @@ class HistogramField(GuidingField):
     def portals(self) -> np.ndarray:
         """Per cell, a portal ``(centre, half-extents)`` (6 numbers: an axis-aligned
         rectangle, one half-extent 0 along its normal), or zeros where none. From the kept
-        records (:meth:`record_portal`): for each axis and each of :data:`PORTAL_PLANES`
-        planes across the field's box, the crossings of a cell's records' rays (beyond a
-        cell's width from their origin and before their next vertex), weighted by the
-        light each brought. A portal covers the crossings' mean +- ``PORTAL_WIDTH``
-        standard deviations of the plane that maximises ``share^2 / solid angle`` (a
-        technique that samples a solid angle ``Omega`` carrying the share ``s`` of the
-        light uniformly has a second moment ``s^2 / Omega`` times that of the BSDF's
-        cosine), among those crossed by at least :data:`PORTAL_SHARE` of the cell's
-        light and covering at most :data:`PORTAL_SOLID_ANGLE` sr. A door in a wall: the
-        door, for the cells of the room behind it."""
+        records (:meth:`record_portal`) of each pool of ``PORTAL_POOL^3`` cells together:
+        for each axis and each candidate plane normal to it (the scene's own,
+        :attr:`geometry_planes`, or where it has none :data:`PORTAL_PLANES` across the
+        field's box), the crossings of the records' rays (beyond a cell's width from their
+        origin and before their next vertex), weighted by the light each brought. The
+        plane chosen maximises ``share^2 / solid angle`` (a technique that samples a solid
+        angle ``Omega`` carrying the share ``s`` of the light uniformly has a second moment
+        ``s^2 / Omega`` times that of the BSDF's cosine; here ``Omega`` is that of the
+        crossings' mean +- ``PORTAL_WIDTH`` standard deviations from the pool's centre,
+        :func:`rectangle_solid_angle`), among those crossed by at least
+        :data:`PORTAL_SHARE` of the pool's light and covering at most
+        :data:`PORTAL_SOLID_ANGLE` sr. The portal then spans that plane's crossings between
+        their light-weighted :data:`PORTAL_TRIM` and ``1 - PORTAL_TRIM`` quantiles per
+        axis (:meth:`_trimmed`), for every cell of the pool. A door in a wall: the door,
+        for the cells of the room behind it."""
         out = np.zeros((self.cells, 6))
         rec = self.portal_source
         cell = rec[:, 0].astype(np.int64)
@@ -530,27 +598,39 @@ class HistogramField(GuidingField):
             return out
         rec, cell = rec[ok], cell[ok]
         x, d, t, w = rec[:, 1:4], rec[:, 4:7], rec[:, 7], rec[:, 8]
-        n = self.cells
-        total = np.bincount(cell, weights=w, minlength=n)
         size = 1.0 / (np.array(self.inv_size) * self.resolution)       # a cell's sides
-        lo, centres = np.array(self.lo), self.centres()
+        lo = np.array(self.lo)
+        # the records of PORTAL_POOL^3 neighbouring cells find one portal together
+        r, q = self.resolution, PORTAL_POOL
+        rq = -(-r // q)
+        pool_of = lambda c: (c % r) // q + ((c // r) % r) // q * rq + (c // (r * r)) // q * rq * rq
+        owner = pool_of(np.arange(self.cells))
+        cell, n = pool_of(cell), rq ** 3
+        i = np.stack([np.arange(n) % rq, (np.arange(n) // rq) % rq, np.arange(n) // (rq * rq)], 1)
+        centres = lo + np.minimum((i + 0.5) * q, 0.5 * (r + (i * q))) * size
+        out = np.zeros((n, 6))
+        total = np.bincount(cell, weights=w, minlength=n)
         best = np.zeros(n)
-        m = n * PORTAL_PLANES
-        per = np.arange(m) // PORTAL_PLANES          # each (cell, plane) key's cell
+        chosen_axis, chosen_plane = np.full(n, -1), np.zeros(n)
         for axis in range(3):
             a, b = [k for k in range(3) if k != axis]
-            planes = lo[axis] + (np.arange(PORTAL_PLANES) + 0.5) * \
+            # the scene's own planes normal to the axis, or where it has none, planes
+            # evenly across the field's box
+            planes = self.geometry_planes[axis] if len(self.geometry_planes[axis]) else \
+                lo[axis] + (np.arange(PORTAL_PLANES) + 0.5) * \
                 (size[axis] * self.resolution / PORTAL_PLANES)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s_all = (planes[None, :] - x[:, axis, None]) / d[:, axis, None]
-            flat = np.flatnonzero((s_all > np.max(size)) & (s_all < t[:, None]) &
-                                  np.isfinite(s_all))
+            count = len(planes)
+            m = n * count
+            per = np.arange(m) // count          # each (cell, plane) key's cell
+            s_all = self._crossing(planes[None, :], x[:, axis, None], d[:, axis, None],
+                                   t[:, None], np.max(size))
+            flat = np.flatnonzero(np.isfinite(s_all))
             if flat.size == 0:
                 continue
-            r, k = flat // PORTAL_PLANES, flat % PORTAL_PLANES
+            r, k = flat // count, flat % count
             sc, wc = s_all.ravel()[flat], w[r]
             u, v = x[r, a] + sc * d[r, a], x[r, b] + sc * d[r, b]
-            key = cell[r] * PORTAL_PLANES + k
+            key = cell[r] * count + k
             W = np.bincount(key, weights=wc, minlength=m)
             W2 = np.bincount(key, weights=wc * wc, minlength=m)
             Wd = np.where(W > 0, W, 1.0)
@@ -562,26 +642,73 @@ class HistogramField(GuidingField):
             hv = np.maximum(PORTAL_WIDTH * np.sqrt(vv), PORTAL_MIN_WIDTH * np.min(size))
             share = W / np.where(total[per] > 0, total[per], 1.0)
             ess = W * W / np.where(W2 > 0, W2, 1.0)
-            # the rectangle's solid angle from the cell's centre (small-angle estimate)
-            plane = np.tile(planes, n)
-            gap = np.abs(plane - centres[per, axis])
-            dist2 = np.maximum(gap ** 2 + (mu - centres[per, a]) ** 2 +
-                               (mv - centres[per, b]) ** 2, 1e-12)
-            omega = 4.0 * hu * hv * gap / dist2 ** 1.5
+            # the rectangle's solid angle from the pool's centre
+            gap = np.abs(np.tile(planes, n) - centres[per, axis])
+            du, dv = mu - centres[per, a], mv - centres[per, b]
+            omega = rectangle_solid_angle(du - hu, du + hu, dv - hv, dv + hv, gap)
             score = np.where((share >= PORTAL_SHARE) & (omega < PORTAL_SOLID_ANGLE) &
                              (omega > 0) & (ess >= PORTAL_MIN_RECORDS),
                              share * share / np.maximum(omega, 1e-12), 0.0)
-            score = score.reshape(n, PORTAL_PLANES)
+            score = score.reshape(n, count)
             k_best = np.argmax(score, axis=1)
             top = score[np.arange(n), k_best]
             better = top > best
-            idx = np.arange(n) * PORTAL_PLANES + k_best
-            out[better] = 0.0
-            out[better, axis] = planes[k_best[better]]
-            out[better, a], out[better, b] = mu[idx[better]], mv[idx[better]]
-            out[better, 3 + a], out[better, 3 + b] = hu[idx[better]], hv[idx[better]]
+            chosen_axis[better], chosen_plane[better] = axis, planes[k_best[better]]
             best = np.where(better, top, best)
-        return out
+        for axis in range(3):
+            a, b = [k for k in range(3) if k != axis]
+            r = np.flatnonzero(chosen_axis[cell] == axis)
+            if r.size == 0:
+                continue
+            c = cell[r]
+            s = self._crossing(chosen_plane[c], x[r, axis], d[r, axis], t[r], np.max(size))
+            keep = np.isfinite(s)
+            r, c, s = r[keep], c[keep], s[keep]
+            centre = np.zeros((n, 3))
+            centre[:, axis] = chosen_plane
+            half = np.zeros((n, 3))
+            for e in (a, b):
+                lo_e, hi_e = self._trimmed(c, x[r, e] + s * d[r, e], w[r], n)
+                centre[:, e] = 0.5 * (lo_e + hi_e)
+                half[:, e] = np.maximum(0.5 * (hi_e - lo_e) / (1.0 - 2.0 * PORTAL_TRIM),
+                                        PORTAL_MIN_WIDTH * np.min(size))
+            mine = chosen_axis == axis
+            out[mine, :3], out[mine, 3:] = centre[mine], half[mine]
+        return out[owner]
+
+    @staticmethod
+    def _crossing(plane, x, d, t, start: float) -> np.ndarray:
+        """Where the ray ``x + s d`` (one axis) crosses ``plane``: ``s``, or NaN unless
+        ``start < s < t (1 - PORTAL_END)`` (beyond a cell's width from its origin, and
+        clearly before its next vertex: a ray that ended on a wall in that plane did not
+        cross it)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (plane - x) / d
+        return np.where((s > start) & (s < t * (1.0 - PORTAL_END)) & np.isfinite(s), s, np.nan)
+
+    @staticmethod
+    def _trimmed(group: np.ndarray, value: np.ndarray, weight: np.ndarray, n: int):
+        """Per group in ``[0, n)``, the ``weight``-weighted :data:`PORTAL_TRIM` and ``1 -
+        PORTAL_TRIM`` quantiles of ``value`` (zeros for a group without values)."""
+        lo, hi = np.zeros(n), np.zeros(n)
+        if group.size == 0:
+            return lo, hi
+        order = np.lexsort((value, group))
+        g, v, wt = group[order], value[order], weight[order]
+        first = np.searchsorted(g, g, side="left")
+        cum = np.cumsum(wt)
+        before = np.where(first > 0, cum[first - 1], 0.0)
+        tot = np.bincount(g, weights=wt, minlength=n)
+        frac = (cum - before - 0.5 * wt) / np.maximum(tot[g], 1e-300)
+        key = 2.0 * g + np.clip(frac, 0.0, 1.0)           # sorted: groups 2 apart
+        groups = np.unique(g)
+        start = np.searchsorted(g, groups, side="left")
+        end = np.searchsorted(g, groups, side="right") - 1
+        i_lo = np.clip(np.searchsorted(key, 2.0 * groups + PORTAL_TRIM), start, end)
+        i_hi = np.clip(np.searchsorted(key, 2.0 * groups + 1.0 - PORTAL_TRIM, side="right") - 1,
+                       start, end)
+        lo[groups], hi[groups] = v[i_lo], v[np.maximum(i_hi, i_lo)]
+        return lo, hi
 
     def centres(self) -> np.ndarray:
         """Every cell's centre (host side), ``(cells, 3)``."""

@@ -21,7 +21,8 @@ from mitsuba_plugins import guided_render
 from mitsuba_plugins.guiding import distance, sampling
 from mitsuba_plugins.guiding.distance import LightGrid, Segment
 from mitsuba_plugins.guiding.field import (ACC_STRIDE, MIN_RECORDS, NEE_MIN, NEE_SHARE,
-                                           NEE_SIDES, PORTAL_PLANES, GuidingField,
+                                           NEE_SIDES, PORTAL_PLANES, PORTAL_POOL,
+                                           GuidingField,
                                            HistogramField, media_bounds)
 from mitsuba_plugins.tracking import equiangular
 
@@ -191,15 +192,10 @@ def test_portal_pdf_is_the_density_of_its_samples(normal):
     assert dens.sum() * 4 * np.pi / Z.size == pytest.approx(1.0, rel=0.01)
 
 
-def test_portals_find_a_door():
-    """Records of a cell whose light all came through a door (a 0.2 x 0.4 rectangle in the
-    plane z = 0.8; rays from points uniform in the cell toward points uniform on it, their
-    next vertex beyond it): ``HistogramField.portals`` puts the cell's portal in a plane of
-    normal z within one candidate plane's spacing of 0.8, centred on the door within 0.05,
-    covering it; a cell without records has none."""
-    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=4)
-    rng = np.random.default_rng(3)
-    n = 4000
+def _door_records(field, rng, n: int = 4000) -> tuple:
+    """Records of one cell whose light all came through a door (a 0.2 x 0.4 rectangle in
+    the plane z = 0.8; rays from points uniform in the cell toward points uniform on it,
+    their next vertex beyond it), as ``HistogramField.portal_source``; and the cell."""
     origin = rng.uniform([0.27, 0.27, 0.02], [0.48, 0.48, 0.23], (n, 3))
     target = np.column_stack([rng.uniform(0.4, 0.6, n), rng.uniform(0.2, 0.6, n),
                               np.full(n, 0.8)])
@@ -207,16 +203,75 @@ def test_portals_find_a_door():
     length = np.linalg.norm(d, axis=1)
     cell = np.array(field.cell(mi.Point3f(*origin.T.astype(np.float32))))
     assert (cell == cell[0]).all()
-    field.portal_source = np.column_stack([cell, origin, d / length[:, None], length + 0.1,
-                                           rng.uniform(0.5, 1.5, n)])
+    return np.column_stack([cell, origin, d / length[:, None], length + 0.1,
+                            rng.uniform(0.5, 1.5, n)]), int(cell[0])
+
+
+def _pool(field, cell: int) -> np.ndarray:
+    """The cells that find one portal with ``cell`` (``PORTAL_POOL`` per axis)."""
+    r, q = field.resolution, PORTAL_POOL
+    i = np.arange(field.cells)
+    same = lambda c: ((i % r) // q == (c % r) // q) & ((i // r) % r // q == (c // r) % r // q) \
+        & ((i // (r * r)) // q == (c // (r * r)) // q)
+    return same(cell)
+
+
+@pytest.mark.parametrize("wall", [False, True])
+def test_portals_find_a_door(wall):
+    """From :func:`_door_records`, ``HistogramField.portals`` puts the cell's portal in a
+    plane of normal z, centred on the door within 0.05 and as wide: within two candidate
+    planes' spacings of 0.8 among planes across the box (at least 90% of the door's
+    width per axis), or, given the wall's plane z = 0.8 among the scene's own planes
+    (``geometry_planes``), in it and within 2% narrower and 10% wider than the door. The cells of the same pool share it; the
+    others have none."""
+    field = HistogramField(mi.ScalarBoundingBox3f([0, 0, 0], [1, 1, 1]), resolution=4)
+    if wall:
+        field.geometry_planes = [np.array([0.0, 1.0]), np.array([0.0, 1.0]),
+                                 np.array([0.0, 0.8, 1.0])]
+    field.portal_source, cell = _door_records(field, np.random.default_rng(3))
     table = field.portals()
-    centre, half = table[cell[0], :3], table[cell[0], 3:]
+    centre, half = table[cell, :3], table[cell, 3:]
     assert half[2] == 0 and half[0] > 0 and half[1] > 0
-    assert abs(centre[2] - 0.8) <= 1.0 / PORTAL_PLANES
+    assert abs(centre[2] - 0.8) <= (1e-9 if wall else 2.0 / PORTAL_PLANES)
     assert np.allclose(centre[:2], [0.5, 0.4], atol=0.05), centre
-    assert half[0] >= 0.1 and half[1] >= 0.2, half
-    others = np.delete(np.arange(field.cells), cell[0])
-    assert (table[others] == 0).all()
+    low = 0.98 if wall else 0.9       # (a plane before the door sees it a little smaller)
+    assert half[0] >= 0.1 * low and half[1] >= 0.2 * low, half
+    if wall:
+        assert half[0] <= 0.11 and half[1] <= 0.22, half
+    pool = _pool(field, cell)
+    assert pool.sum() == 8 and (table[pool] == table[cell]).all()
+    assert (table[~pool] == 0).all()
+
+
+def test_rectangle_solid_angle():
+    """``rectangle_solid_angle`` against Van Oosterom and Strackee's two triangles for
+    rectangles on and off the point's foot, near and far; a half-plane's limit 2 pi
+    over the whole plane, and 0 in the plane itself."""
+    from mitsuba_plugins.guiding.field import rectangle_solid_angle
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        u0, v0 = rng.uniform(-1.0, 1.0, 2)
+        u1, v1 = u0 + rng.uniform(0.01, 2.0), v0 + rng.uniform(0.01, 2.0)
+        h = rng.uniform(0.05, 3.0)
+        exact = _rectangle_solid_angle([0.0, 0.0, 0.0], [(u0 + u1) / 2, (v0 + v1) / 2, h],
+                                       [(u1 - u0) / 2, (v1 - v0) / 2, 0.0])
+        assert rectangle_solid_angle(u0, u1, v0, v1, h) == pytest.approx(exact, rel=1e-9)
+    assert rectangle_solid_angle(-1e6, 1e6, -1e6, 1e6, 1.0) == pytest.approx(2 * np.pi, 1e-5)
+    assert rectangle_solid_angle(-1.0, 1.0, -1.0, 1.0, 0.0) == 0.0
+
+
+def test_geometry_planes_are_the_walls():
+    """``geometry_planes`` of the guiding benchmark's door room (rectangles Mitsuba merges
+    into meshes): per axis the coordinates of its walls, floors and ceilings (and the
+    light's plane y = -0.99), each once; none of a sphere."""
+    from benchmarks.guiding import door_room
+    from mitsuba_plugins.guiding.field import geometry_planes
+    planes = geometry_planes(door_room(8))
+    assert np.allclose(planes[0], [-1.0, 1.0])
+    assert np.allclose(planes[1], [-1.0, -0.99, 1.0])
+    assert np.allclose(planes[2], [-1.0, 1.0, 2.6])
+    ball = mi.load_dict({"type": "scene", "ball": {"type": "sphere"}})
+    assert all(len(p) == 0 for p in geometry_planes(ball))
 
 
 def test_guided_surfaces_with_portals_estimate_the_same_image():
