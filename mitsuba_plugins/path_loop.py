@@ -159,7 +159,7 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
             guidable = active_next & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
                 ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
         if dr.hint(guided, mode="scalar"):
-            p_b, bs, bsdf_weight, g = mix_surface(
+            p_b, bs, bsdf_weight, g, mis_pdf = mix_surface(
                 guide.field, guide.fraction, bsdf, bsdf_ctx, si, ds.d, p_b, bs, bsdf_weight,
                 sampler.next_1d(), u2, guidable & still_guided(gain), active_em,
                 guide.portal)
@@ -184,7 +184,8 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
         eta *= bs.eta
         valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
         prev_si = mi.Interaction3f(si)
-        prev_pdf = bs.pdf
+        # (a guided sample's MIS density: mix_surface)
+        prev_pdf = mis_pdf if guided else bs.pdf
         prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         if dr.hint(learnt_nee, mode="scalar"):
             prev_q = q

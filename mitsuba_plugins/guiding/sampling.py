@@ -353,14 +353,20 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     the BSDF's own sample ``bs``; one-sample MIS, pdf ``(1 - a) p_bsdf + a g``. Surface
     paths are short, so the mixture's weights (at most ``1 / (1 - a)`` times the BSDF's)
     do not compound as they do over a walk in a medium. Returns ``(pdf of d_light, the
-    sample, its weight, gain)`` (``gain``: the BSDF's own weight of the sample
-    over the mixture's, ``pdf / p_bsdf``, for the roulette): the mixture pdf of the emitter sample's direction is the
-    BSDF side of next-event estimation's MIS, and the sample's ``pdf`` that of emission
-    found by the new ray; ``active_light``: the lanes that sampled an emitter (elsewhere
-    that pdf is not needed, and its two lookups are skipped). ``portal`` (``path_rr``'s
+    sample, its weight, gain, the sample's MIS pdf)`` (``gain``: the BSDF's own weight
+    of the sample over the mixture's, ``pdf / p_bsdf``, for the roulette): the mixture
+    pdf of the emitter sample's direction is the BSDF side of next-event estimation's
+    MIS, and the sample's MIS pdf that of emission found by the new ray;
+    ``active_light``: the lanes that sampled an emitter (elsewhere that pdf is not
+    needed, and its two lookups are skipped). ``portal`` (``path_rr``'s
     ``guiding_portal``): where the cell has a learnt portal, first with this probability
     the direction toward a point uniform on it (:meth:`HistogramField.portal_sample`),
-    and the pdf ``b p_portal + (1 - b) ((1 - a) p_bsdf + a g)``."""
+    and the sample's pdf ``b p_portal + (1 - b) ((1 - a) p_bsdf + a g)``. The MIS
+    weights between emitter samples and this choice leave the portal's term out on both
+    sides (``(1 - a) p_bsdf + a g`` for the emitter sample's direction and for the
+    emission a sampled direction finds): they still sum to 1 for every direction, so the
+    estimate stays unbiased, and the portal's density is evaluated once per vertex,
+    not twice."""
     cell = field.cell(si.p)
     alpha = dr.select(active & field.trained(cell, active), fraction, 0.0)
     guided = alpha > 0
@@ -393,7 +399,7 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
         wo = dr.select(use_portal, si.to_local(dr.normalize(aimed)), wo)
         use |= use_portal
     f, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-    pdf = dr.lerp(p_bsdf, folded(wo), alpha)
+    pdf = mis_pdf = dr.lerp(p_bsdf, folded(wo), alpha)
     if opening:
         pdf = dr.lerp(pdf, field.portal_pdf(centre, half, inv_area, si.p, si.to_world(wo)), beta)
     sample = mi.BSDFSample3f(bs)
@@ -405,7 +411,6 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     gain = dr.select(guided & (p_bsdf > 0), pdf / dr.maximum(p_bsdf, 1e-30), 1.0)
     p_mixed = dr.lerp(p_light, folded(si.to_local(d_light), guided & active_light), alpha)
-    if opening:
-        p_mixed = dr.lerp(p_mixed, field.portal_pdf(centre, half, inv_area, si.p, d_light), beta)
     p_light = dr.select(guided, p_mixed, p_light)
-    return p_light, sample, mi.Spectrum(mixed_weight), gain
+    return p_light, sample, mi.Spectrum(mixed_weight), gain, \
+        dr.select(guided, mis_pdf, bs.pdf)
