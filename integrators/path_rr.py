@@ -87,9 +87,9 @@ class PathRR(PathIntegrator):
        - |float|
        - With ``guiding``: the share of a guided vertex's directions drawn toward a
          point of its cell's learnt portal, in [0, 0.5]: an axis-aligned rectangle that
-         most of the cell's recorded light crossed (a door, a hole), found from the
-         last training pass's records; its density enters the mixture's pdf (docs/method.md
-         section 13). 0: none. (Default: 0.1)
+         most of the recorded light of its neighbourhood crossed (a door, a hole), found
+         from the training passes' records; its density enters the mixture's pdf
+         (docs/method.md section 13). 0: none. (Default: 0.1)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)

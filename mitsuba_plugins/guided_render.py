@@ -270,9 +270,9 @@ def render(integrator, scene: mi.Scene, sensor=0, seed=0, spp: int = 0) -> mi.Te
                        light=light, symmetric=symmetric, media=media_needs,
                        nee=getattr(integrator, "guiding_nee", False),
                        portal=getattr(integrator, "guiding_portal", 0.0))
-        if guide is not None and guide.portal > 0 and k == len(plan) - 2 and \
+        if guide is not None and guide.portal > 0 and not last and \
                 hasattr(field, "keep_portal_records"):
-            field.keep_portal_records()     # the last training pass finds the portals
+            field.keep_portal_records()     # every training pass finds the portals anew
         if guide is not None and guide.nee and seen is not None:
             guide.pixel_weight = pixel_weights(seen / seen_spp)
         pass_seed = seed if k == 0 else _pass_seed(seed, k)

@@ -109,7 +109,7 @@ def trace_surfaces(integrator, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray
     active = mi.Bool(active)                         # lanes still tracing
     guided = guide is not None and guide.sampling    # directions from the field
     recording = guide is not None and guide.recording
-    # the records of the last training pass also find the field's portals
+    # the records of the training passes also find the field's portals
     portals = recording and getattr(guide.field, "portal_buffer", None) is not None
     records = (SurfaceRecords() if portals else Records()) if recording else None
     gain = mi.Float(1.0) if guided else None         # unguided throughput / beta (roulette)

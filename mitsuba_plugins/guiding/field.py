@@ -80,12 +80,14 @@ def field_bytes(resolution: int, bins: int = 0) -> int:
     per side the emitter samples' 2 sums, on the host (:data:`CELL_BYTES`); with ``bins``
     (:class:`HistogramField`) ``bins^2`` bins of 4 words on the device (probability,
     cumulative, guide table, accumulator) and a double on the host, and its portals: 8
-    floats per cell and, while the last training pass keeps their records, up to
-    :data:`PORTAL_ROWS` rows of 16 floats per cell (:data:`PORTAL_BUFFER` rows at most).
+    floats per cell and, while a training pass keeps their records, up to
+    :data:`PORTAL_ROWS` rows of 16 floats per cell (:data:`PORTAL_BUFFER` rows at most)
+    on the device and :data:`PORTAL_KEPT` records of 9 floats on the host.
     """
     cells = resolution ** 3
     portals = 0 if not bins else \
-        cells * 8 * 4 + min(cells * PORTAL_ROWS, PORTAL_BUFFER) * PORTAL_STRIDE * 4
+        cells * 8 * 4 + min(cells * PORTAL_ROWS, PORTAL_BUFFER) * PORTAL_STRIDE * 4 + \
+        PORTAL_KEPT * 9 * 4
     return cells * (CELL_BYTES + bins * bins * (4 * 4 + 8)) + portals
 
 
@@ -440,7 +442,7 @@ def geometry_planes(scene: mi.Scene, most: int = 0) -> list:
 #: default bins per axis of :class:`HistogramField`'s directional histograms (path_rr's
 #: ``guiding_bins``)
 BINS = 16
-#: portals (:meth:`HistogramField.portals`): records kept per cell by the last training
+#: portals (:meth:`HistogramField.portals`): records kept per cell by each training
 #: pass (one per path, the slot that brought it the most light; at most PORTAL_BUFFER
 #: in all), candidate planes per axis across the field's box where the scene has none of
 #: its own, and the half-width, in standard deviations of a plane's crossings, of the
@@ -479,6 +481,13 @@ PORTAL_POOL = 2
 #: floats per kept record: cell, position, direction, distance to the next vertex, value
 #: (and spares: one packet scatter of a power of two)
 PORTAL_STRIDE = 16
+#: ... and the most records the host keeps from the passes so far (the newest; 9 floats
+#: each). Every training pass keeps records and the portals are found anew after each,
+#: from all of them: on the tuning room (ad-hoc, 128x128, 256 spp, 4 renders, relMSE
+#: per sample over plain path_rr's) the last training pass's records alone gave 0.26,
+#: with the pass before it 0.21, with every pass 0.18; the last pass with 4x as many
+#: rows 0.26: what pays is portals in the training passes and records of several fields
+PORTAL_KEPT = 1 << 18
 
 
 class HistogramField(GuidingField):
@@ -558,7 +567,8 @@ class HistogramField(GuidingField):
 
     def keep_portal_records(self) -> None:
         """The next pass hands :meth:`record_portal` its records (a fresh buffer); the
-        update after it finds the portals from them (:meth:`portals`)."""
+        update after it finds the portals from them and those the passes before kept
+        (:meth:`portals`)."""
         self.portal_rows = max(4, min(PORTAL_ROWS, PORTAL_BUFFER // self.cells))    # per cell
         self.portal_buffer = dr.zeros(mi.Float, self.cells * self.portal_rows * PORTAL_STRIDE)
         dr.eval(self.portal_buffer)      # (a literal target would split the pass's kernel)
@@ -566,8 +576,12 @@ class HistogramField(GuidingField):
     def update(self) -> int:
         self.hist += np.array(self.acc_hist, np.float64).reshape(self.cells, self.size)
         if self.portal_buffer is not None:
-            self.portal_source = np.array(self.portal_buffer, np.float64).reshape(
-                -1, PORTAL_STRIDE)[:, :9]
+            # this pass's records join those of the passes before (the newest PORTAL_KEPT)
+            fresh = np.array(self.portal_buffer, np.float32).reshape(-1, PORTAL_STRIDE)[:, :9]
+            fresh = fresh[fresh[:, 8] > 0]
+            if self.portal_source is not None:
+                fresh = np.concatenate([self.portal_source, fresh])
+            self.portal_source = fresh[-PORTAL_KEPT:]
             self.portal_buffer = None
         return super().update()
 
