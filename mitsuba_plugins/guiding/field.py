@@ -724,13 +724,6 @@ class HistogramField(GuidingField):
         lo[groups], hi[groups] = v[i_lo], v[np.maximum(i_hi, i_lo)]
         return lo, hi
 
-    def centres(self) -> np.ndarray:
-        """Every cell's centre (host side), ``(cells, 3)``."""
-        r = self.resolution
-        c = np.arange(self.cells)
-        i = np.stack([c % r, (c // r) % r, c // (r * r)], axis=1)
-        return np.array(self.lo) + (i + 0.5) / (np.array(self.inv_size) * r)
-
     def portal(self, cell: mi.UInt32, active=True):
         """``(centre, half-extents, 1 / area)`` of ``cell``'s portal (:meth:`portals`; 1 /
         area 0 where none)."""

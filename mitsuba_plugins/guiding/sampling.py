@@ -410,7 +410,7 @@ def mix_surface(field, fraction: float, bsdf, bsdf_ctx, si, d_light, p_light, bs
                                     bs.sampled_type)
     mixed_weight = dr.select(guided, dr.select(pdf > 0, f / pdf, 0.0), weight)
     gain = dr.select(guided & (p_bsdf > 0), pdf / dr.maximum(p_bsdf, 1e-30), 1.0)
-    p_mixed = dr.lerp(p_light, folded(si.to_local(d_light), guided & active_light), alpha)
-    p_light = dr.select(guided, p_mixed, p_light)
+    p_light = dr.select(guided, dr.lerp(
+        p_light, folded(si.to_local(d_light), guided & active_light), alpha), p_light)
     return p_light, sample, mi.Spectrum(mixed_weight), gain, \
         dr.select(guided, mis_pdf, bs.pdf)
